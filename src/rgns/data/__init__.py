@@ -1,0 +1,1 @@
+"""Data: the on-disk contract, graphs, windows, generation, conversion and the DataModule."""

@@ -1,0 +1,253 @@
+"""The rgns data contract: how a particle dataset lies on disk.
+
+A dataset is a folder::
+
+    metadata.json
+    train.h5  valid.h5  test.h5
+
+Each split holds one HDF5 group per trajectory, named ``00000``, ``00001``, ..., with
+
+- ``position``       float32 ``[T, N, D]``: particle positions, one row per frame;
+- ``particle_type``  int64   ``[N]``: DeepMind's ids (5 water, 6 sand, 7 goop,
+  3 static boundary, 0 rigid).
+
+``metadata.json`` carries DeepMind's keys (``bounds``, ``sequence_length``,
+``default_connectivity_radius``, ``dim``, ``dt``, ``vel_mean``, ``vel_std``, ``acc_mean``,
+``acc_std``) plus what rgns adds (``num_particles_max`` and how the data was made).
+Velocities and accelerations are per frame (dt = 1 in position units), as in GNS.
+
+Kinematic particles (type 3) are conditions: never predicted, never noised, never in a loss.
+
+Every write goes to a temporary file beside its target and is renamed over it, so an
+interrupted write never leaves a half-written file where a good one was.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterable, Iterator, NamedTuple
+
+import h5py
+import numpy as np
+
+SPLITS = ("train", "valid", "test")
+REQUIRED_KEYS = (
+    "bounds",
+    "sequence_length",
+    "default_connectivity_radius",
+    "dim",
+    "dt",
+    "vel_mean",
+    "vel_std",
+    "acc_mean",
+    "acc_std",
+)
+RIGID, KINEMATIC, WATER, SAND, GOOP = 0, 3, 5, 6, 7
+NUM_PARTICLE_TYPES = 9
+
+
+class DatasetError(ValueError):
+    """A dataset file breaks the contract; the message names the file and what is wrong."""
+
+
+class Trajectory(NamedTuple):
+    position: np.ndarray  # [T, N, D] float32
+    particle_type: np.ndarray  # [N] int64
+
+
+@contextmanager
+def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``target``; rename it over ``target`` only on success."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def dataset_folder(folder: str | os.PathLike) -> Path:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: dataset folder does not exist")
+    return folder
+
+
+def read_metadata(folder: str | os.PathLike) -> dict:
+    """Read and check ``metadata.json`` of a dataset folder."""
+    path = dataset_folder(folder) / "metadata.json"
+    if not path.is_file():
+        raise DatasetError(f"{path}: metadata file is missing")
+    try:
+        metadata = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DatasetError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(metadata, dict):
+        raise DatasetError(f"{path}: expected a JSON object, got {type(metadata).__name__}")
+    missing = [key for key in REQUIRED_KEYS if key not in metadata]
+    if missing:
+        raise DatasetError(f"{path}: missing key(s) {', '.join(missing)}")
+    dim = metadata["dim"]
+    if dim not in (2, 3):
+        raise DatasetError(f"{path}: key 'dim' must be 2 or 3, got {dim!r}")
+    for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
+        if len(metadata[key]) != dim:
+            raise DatasetError(f"{path}: key '{key}' has {len(metadata[key])} entries, 'dim' is {dim}")
+    if len(metadata["bounds"]) != dim:
+        raise DatasetError(f"{path}: key 'bounds' has {len(metadata['bounds'])} rows, 'dim' is {dim}")
+    return metadata
+
+
+def write_metadata(folder: str | os.PathLike, metadata: dict) -> None:
+    missing = [key for key in REQUIRED_KEYS if key not in metadata]
+    if missing:
+        raise DatasetError(f"{folder}: metadata to write lacks key(s) {', '.join(missing)}")
+    with atomic_path(Path(folder) / "metadata.json") as tmp:
+        tmp.write_text(json.dumps(metadata, indent=2, sort_keys=True) + "\n")
+
+
+def split_path(folder: str | os.PathLike, split: str) -> Path:
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
+    path = dataset_folder(folder) / f"{split}.h5"
+    if not path.is_file():
+        raise DatasetError(f"{path}: split '{split}' is missing")
+    return path
+
+
+def write_split(path: str | os.PathLike, trajectories: Iterable[Trajectory | tuple]) -> int:
+    """Write trajectories (streamed, one at a time) to one split file, atomically.
+
+    Returns the number of trajectories written.
+    """
+    count = 0
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as h5:
+            for position, particle_type in trajectories:
+                position = np.asarray(position, dtype=np.float32)
+                particle_type = np.asarray(particle_type, dtype=np.int64)
+                if position.ndim != 3 or particle_type.shape != (position.shape[1],):
+                    raise DatasetError(
+                        f"{path}: trajectory {count:05d} has position {position.shape} and "
+                        f"particle_type {particle_type.shape}; expected [T, N, D] and [N]"
+                    )
+                group = h5.create_group(f"{count:05d}")
+                group.create_dataset("position", data=position)
+                group.create_dataset("particle_type", data=particle_type)
+                count += 1
+    return count
+
+
+class Split:
+    """Read-only view of one split file, checked against the contract when opened.
+
+    Shapes and dtypes of every trajectory are checked on open (cheap: HDF5 headers only);
+    values (NaN, Inf) are checked when a trajectory is read.
+
+    Args:
+        path: the ``.h5`` file.
+        dim: the dataset's dimension from metadata; positions must agree.
+        min_frames: the fewest frames a trajectory may have (a training window's length).
+    """
+
+    def __init__(self, path: str | os.PathLike, dim: int | None = None, min_frames: int = 1):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise DatasetError(f"{self.path}: file is missing")
+        try:
+            self._h5 = h5py.File(self.path, "r")
+        except OSError as err:
+            raise DatasetError(f"{self.path}: not a readable HDF5 file ({err})") from None
+        try:
+            self.keys = sorted(self._h5.keys())
+            self.shapes = [self._check(key, dim, min_frames) for key in self.keys]
+        except Exception:
+            self._h5.close()
+            raise
+
+    def _where(self, key: str) -> str:
+        return f"{self.path}, trajectory '{key}'"
+
+    def _check(self, key: str, dim: int | None, min_frames: int) -> tuple[int, int, int]:
+        group = self._h5[key]
+        if not isinstance(group, h5py.Group) or "position" not in group or "particle_type" not in group:
+            raise DatasetError(f"{self._where(key)}: needs datasets 'position' and 'particle_type'")
+        position, particle_type = group["position"], group["particle_type"]
+        if position.ndim != 3:
+            raise DatasetError(f"{self._where(key)}: 'position' must be 3-D [T, N, D], got shape {position.shape}")
+        if position.dtype.kind != "f":
+            raise DatasetError(f"{self._where(key)}: 'position' must be float, got {position.dtype}")
+        frames, particles, pos_dim = position.shape
+        if dim is not None and pos_dim != dim:
+            raise DatasetError(f"{self._where(key)}: 'position' has D={pos_dim} but metadata 'dim' is {dim}")
+        if particle_type.shape != (particles,):
+            raise DatasetError(
+                f"{self._where(key)}: 'particle_type' has shape {particle_type.shape}, expected ({particles},)"
+            )
+        if particle_type.dtype.kind not in "iu":
+            raise DatasetError(f"{self._where(key)}: 'particle_type' must be integer, got {particle_type.dtype}")
+        if frames < min_frames:
+            raise DatasetError(f"{self._where(key)}: {frames} frames, fewer than the {min_frames} a window needs")
+        return frames, particles, pos_dim
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def __getitem__(self, index: int) -> Trajectory:
+        key = self.keys[index]
+        group = self._h5[key]
+        try:
+            position = np.asarray(group["position"][()], dtype=np.float32)
+            particle_type = np.asarray(group["particle_type"][()], dtype=np.int64)
+        except OSError as err:
+            raise DatasetError(f"{self._where(key)}: cannot be read, the file may be truncated ({err})") from None
+        if not np.isfinite(position).all():
+            frame = int(np.nonzero(~np.isfinite(position).reshape(len(position), -1).all(1))[0][0])
+            raise DatasetError(f"{self._where(key)}: 'position' holds NaN or Inf (first at frame {frame})")
+        return Trajectory(position, particle_type)
+
+    def __iter__(self) -> Iterator[Trajectory]:
+        return (self[i] for i in range(len(self)))
+
+    def close(self) -> None:
+        self._h5.close()
+
+    def __enter__(self) -> "Split":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # h5py handles cannot be pickled; DataLoader workers reopen the file.
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state.pop("_h5")
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._h5 = h5py.File(self.path, "r")
+
+
+def open_split(folder: str | os.PathLike, split: str, min_frames: int = 1) -> Split:
+    """Open one split of a dataset folder, checked against its metadata."""
+    metadata = read_metadata(folder)
+    return Split(split_path(folder, split), dim=metadata["dim"], min_frames=min_frames)
+
+
+def validate_dataset(folder: str | os.PathLike, min_frames: int = 1) -> dict:
+    """Read every trajectory of every split; raise the first contract violation. Returns metadata."""
+    metadata = read_metadata(folder)
+    for split in SPLITS:
+        with open_split(folder, split, min_frames) as data:
+            for _ in data:
+                pass
+    return metadata
+

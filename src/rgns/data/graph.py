@@ -1,0 +1,62 @@
+"""The graph shared by both directions of a step t <-> t+1: the radius graph of ``p^t``.
+
+Edges follow PyG's convention: ``edge_index[0]`` are senders j, ``edge_index[1]`` receivers i,
+messages flow j -> i. Both directions of every pair are present, no self-loops, no cap on the
+number of neighbours (distances in float64, as scipy computes them).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+
+def radius_graph(position: np.ndarray | torch.Tensor, radius: float) -> torch.Tensor:
+    """All pairs closer than ``radius``.
+
+    Shapes:
+        position: ``[N, D]``  ->  edge_index: ``[2, E]`` (int64, on the CPU)
+    """
+    if isinstance(position, torch.Tensor):
+        position = position.detach().cpu().numpy()
+    pairs = cKDTree(np.asarray(position, dtype=np.float64)).query_pairs(radius, output_type="ndarray")
+    pairs = torch.from_numpy(pairs.astype(np.int64)).t()  # [2, E/2]
+    return torch.cat([pairs, pairs.flip(0)], dim=1)
+
+
+def batched_radius_graph(position: torch.Tensor, radius: float, batch: torch.Tensor | None = None) -> torch.Tensor:
+    """Radius graph of several disjoint graphs stacked as in a PyG ``Batch``.
+
+    Shapes:
+        position: ``[N, D]``, batch: ``[N]`` (graph id per node, sorted)  ->  ``[2, E]`` on ``position.device``
+    """
+    if batch is None:
+        return radius_graph(position, radius).to(position.device)
+    counts = torch.bincount(batch).tolist()
+    parts, offset = [], 0
+    for chunk in torch.split(position, counts):
+        parts.append(radius_graph(chunk, radius) + offset)
+        offset += len(chunk)
+    return torch.cat(parts, dim=1).to(position.device)
+
+
+def edge_features(position: torch.Tensor, edge_index: torch.Tensor, radius: float) -> torch.Tensor:
+    """Relative displacement of sender to receiver over R, and its norm.
+
+    Shapes:
+        position: ``[N, D]``, edge_index: ``[2, E]``  ->  ``[E, D + 1]``
+    """
+    sender, receiver = edge_index
+    displacement = (position[sender] - position[receiver]) / radius  # [E, D]
+    return torch.cat([displacement, displacement.norm(dim=-1, keepdim=True)], dim=-1)
+
+
+def wall_distance(position: torch.Tensor, bounds: torch.Tensor, radius: float) -> torch.Tensor:
+    """Distance to the lower and upper box bounds over R, clipped to [-1, 1] as in GNS.
+
+    Shapes:
+        position: ``[N, D]``, bounds: ``[D, 2]``  ->  ``[N, 2 D]``
+    """
+    lower = position - bounds[:, 0]
+    upper = bounds[:, 1] - position
+    return torch.cat([lower, upper], dim=-1).div(radius).clamp(-1.0, 1.0)

@@ -1,0 +1,104 @@
+"""Training windows and whole trajectories, as PyG data.
+
+A window of trajectory ``s`` at frame ``t`` holds k + 2 frames ``p^{t-k} ... p^{t+1}``, that is
+k + 1 velocities ``v^{t-k+1} ... v^{t+1}``. It yields both samples of the step t <-> t+1 on the
+one graph they share, the radius graph of ``p^t``:
+
+- forward:  history ``V^t = (v^{t-k+1} ... v^t)``    -> newest velocity ``v^{t+1}``;
+- inverse:  history ``V^{t+1} = (v^{t-k+2} ... v^{t+1})`` -> oldest velocity ``v^{t-k+1}``.
+
+Training noise is GNS's random walk: velocity noise accumulated over the window (zero on
+kinematic particles), the oldest frame ``p^{t-k}`` left clean. Targets are corrected as GNS
+does, so that a perfect prediction lands on the true position: the forward target is
+``p^{t+1} - p~^t``; the inverse target is ``p~^{t-k+1} - p^{t-k}``.
+"""
+from __future__ import annotations
+
+import torch
+from torch.utils.data import Dataset
+from torch_geometric.data import Data
+
+from rgns.data.contract import KINEMATIC, Split
+from rgns.data.graph import radius_graph
+
+
+def random_walk_noise(shape: tuple[int, int, int], noise_std: float, moving: torch.Tensor) -> torch.Tensor:
+    """Velocity noise accumulated over the window; the last velocity's noise has std ``noise_std``.
+
+    Shapes:
+        shape: ``(W, N, D)`` velocities per window; moving: ``[N]`` bool  ->  ``[W, N, D]``
+    """
+    steps = torch.randn(shape) * (noise_std / shape[0] ** 0.5)
+    return steps.cumsum(0) * moving[None, :, None]
+
+
+class WindowDataset(Dataset):
+    """Every (trajectory, t) window of a split, as a PyG ``Data`` with the fields
+
+    ``pos [N, D]`` (``p~^t``), ``edge_index [2, E]``, ``particle_type [N]``,
+    ``forward_input [N, k, D]``, ``forward_target [N, D]``,
+    ``inverse_input [N, k, D]``, ``inverse_target [N, D]``.
+
+    Args:
+        split: an open :class:`~rgns.data.contract.Split`.
+        radius: connectivity radius.
+        history: k, the number of velocities in a history.
+        noise_std: GNS random-walk noise std (0 for validation).
+    """
+
+    def __init__(self, split: Split, radius: float, history: int = 5, noise_std: float = 0.0):
+        self.split, self.radius, self.history, self.noise_std = split, radius, history, noise_std
+        self.window = history + 2
+        # window (s, t) covers frames t-k .. t+1; t runs over k .. T-2
+        self.index = [(s, t) for s, (frames, _, _) in enumerate(split.shapes) for t in range(history, frames - 1)]
+        self._cache: tuple[int, torch.Tensor, torch.Tensor] | None = None
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def _trajectory(self, s: int) -> tuple[torch.Tensor, torch.Tensor]:
+        # consecutive windows of one trajectory are common (and whole trajectories are small)
+        if self._cache is None or self._cache[0] != s:
+            position, particle_type = self.split[s]
+            self._cache = (s, torch.from_numpy(position), torch.from_numpy(particle_type))
+        return self._cache[1], self._cache[2]
+
+    def __getitem__(self, i: int) -> Data:
+        s, t = self.index[i]
+        position, particle_type = self._trajectory(s)
+        k = self.history
+        frames = position[t - k : t + 2]  # [k+2, N, D]: p^{t-k} .. p^{t+1}
+        velocity = frames[1:] - frames[:-1]  # [k+1, N, D]: v^{t-k+1} .. v^{t+1}
+        if self.noise_std > 0:
+            noisy = velocity + random_walk_noise(velocity.shape, self.noise_std, particle_type != KINEMATIC)
+        else:
+            noisy = velocity
+        noisy_position = frames[0] + noisy.cumsum(0)  # [k+1, N, D]: p~^{t-k+1} .. p~^{t+1}
+        position_t = noisy_position[-2]  # p~^t
+        forward_target = frames[-1] - position_t  # lands on the true p^{t+1}
+        inverse_target = noisy_position[0] - frames[0]  # lands on the true p^{t-k}
+        return Data(
+            pos=position_t,
+            edge_index=radius_graph(position_t, self.radius),
+            particle_type=particle_type,
+            forward_input=noisy[:-1].transpose(0, 1).contiguous(),  # [N, k, D]
+            forward_target=forward_target,
+            inverse_input=noisy[1:].transpose(0, 1).contiguous(),  # [N, k, D]
+            inverse_target=inverse_target,
+            num_nodes=len(particle_type),
+        )
+
+
+class TrajectoryDataset(Dataset):
+    """Whole trajectories for rollouts: ``Data(position [T, N, D], particle_type [N])``."""
+
+    def __init__(self, split: Split):
+        self.split = split
+
+    def __len__(self) -> int:
+        return len(self.split)
+
+    def __getitem__(self, i: int) -> Data:
+        position, particle_type = self.split[i]
+        return Data(position=torch.from_numpy(position), particle_type=torch.from_numpy(particle_type))
+

@@ -1,0 +1,45 @@
+"""Shared fixtures: tiny datasets written through the data contract."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from rgns.data.contract import KINEMATIC, SPLITS, WATER, write_metadata, write_split
+
+torch.set_num_threads(1)
+
+
+def make_metadata(dim: int = 2, radius: float = 0.08, frames: int = 20) -> dict:
+    return dict(
+        bounds=[[0.1, 0.9]] * dim,
+        sequence_length=frames - 1,
+        default_connectivity_radius=radius,
+        dim=dim,
+        dt=0.0025,
+        vel_mean=[0.0] * dim,
+        vel_std=[1e-3] * dim,
+        acc_mean=[0.0] * dim,
+        acc_std=[1e-4] * dim,
+    )
+
+
+def random_trajectory(rng: np.random.Generator, frames: int = 20, particles: int = 60, dim: int = 2, kinematic: int = 6):
+    """Brownian particles in the box; the last ``kinematic`` particles are type 3 and never move."""
+    start = rng.uniform(0.2, 0.8, (1, particles, dim))
+    steps = rng.normal(scale=1e-3, size=(frames, particles, dim))
+    steps[:, particles - kinematic :] = 0.0
+    position = (start + np.cumsum(steps, axis=0)).astype(np.float32)
+    particle_type = np.full(particles, WATER, dtype=np.int64)
+    particle_type[particles - kinematic :] = KINEMATIC
+    return position, particle_type
+
+
+@pytest.fixture
+def tiny_dataset(tmp_path):
+    """A 2D dataset folder: 3 train, 2 valid, 2 test trajectories of 20 frames, 60 particles."""
+    rng = np.random.default_rng(0)
+    for split, count in zip(SPLITS, (3, 2, 2)):
+        write_split(tmp_path / f"{split}.h5", [random_trajectory(rng) for _ in range(count)])
+    write_metadata(tmp_path, make_metadata())
+    return tmp_path

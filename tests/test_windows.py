@@ -1,0 +1,97 @@
+import numpy as np
+import pytest
+import torch
+
+from rgns.data.contract import KINEMATIC, open_split
+from rgns.data.datamodule import ParticleDataModule
+from rgns.data.graph import radius_graph
+from rgns.data.windows import WindowDataset
+
+K = 5
+
+
+@pytest.fixture
+def split(tiny_dataset):
+    with open_split(tiny_dataset, "train", min_frames=K + 2) as data:
+        yield data
+
+
+def test_windows_cover_every_frame(split):
+    windows = WindowDataset(split, radius=0.08, history=K)
+    assert len(windows) == 3 * (20 - K - 1)
+
+
+def test_clean_window_holds_both_directions(split):
+    windows = WindowDataset(split, radius=0.08, history=K)
+    position = torch.from_numpy(split[0].position)
+    velocity = position[1:] - position[:-1]
+    sample = windows[3]  # trajectory 0, t = K + 3
+    t = K + 3
+    torch.testing.assert_close(sample.pos, position[t], rtol=0, atol=1e-6)
+    torch.testing.assert_close(sample.forward_input, velocity[t - K : t].transpose(0, 1), rtol=0, atol=1e-6)
+    torch.testing.assert_close(sample.forward_target, velocity[t], rtol=0, atol=1e-6)
+    torch.testing.assert_close(sample.inverse_input, velocity[t - K + 1 : t + 1].transpose(0, 1), rtol=0, atol=1e-6)
+    torch.testing.assert_close(sample.inverse_target, velocity[t - K], rtol=0, atol=1e-6)
+
+
+def test_noisy_targets_land_on_true_positions(split):
+    torch.manual_seed(0)
+    windows = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2)
+    position = torch.from_numpy(split[1].position)
+    t = K + 2
+    sample = windows[(20 - K - 1) + 2]  # trajectory 1, t = K + 2
+    assert not torch.allclose(sample.pos, position[t])  # noise is there ...
+    # ... yet the forward target brings p~^t onto p^{t+1}
+    torch.testing.assert_close(sample.pos + sample.forward_target, position[t + 1], rtol=0, atol=1e-6)
+    # and the inverse target brings p~^{t-k+1} onto p^{t-k}
+    oldest = sample.pos - sample.forward_input[:, 1:].sum(1)
+    torch.testing.assert_close(oldest - sample.inverse_target, position[t - K], rtol=0, atol=1e-6)
+    # the two histories are one window shifted by a frame
+    torch.testing.assert_close(sample.inverse_input[:, :-1], sample.forward_input[:, 1:])
+    kinematic = sample.particle_type == KINEMATIC
+    assert kinematic.any()
+    torch.testing.assert_close(sample.pos[kinematic], position[t][kinematic], rtol=0, atol=0)
+
+
+def test_radius_graph_is_every_pair_within_radius():
+    position = torch.rand(300, 3)
+    edges = radius_graph(position, 0.2)
+    distance = torch.cdist(position.double(), position.double())
+    expected = ((distance < 0.2) & ~torch.eye(300, dtype=torch.bool)).nonzero().t()
+    got = set(map(tuple, edges.t().tolist()))
+    assert got == set(map(tuple, expected.t().tolist()))
+    assert len(got) == edges.shape[1]  # no duplicates
+
+
+def test_datamodule_batches_two_graphs(tiny_dataset):
+    dm = ParticleDataModule(str(tiny_dataset), batch_size=2)
+    dm.prepare_data()
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert batch.num_graphs == 2
+    assert batch.forward_input.shape == (120, K, 2)
+    assert int(batch.edge_index.max()) < 120
+    # edges never join the two graphs
+    assert (batch.batch[batch.edge_index[0]] == batch.batch[batch.edge_index[1]]).all()
+
+
+def test_missing_dataset_names_the_command(tmp_path):
+    dm = ParticleDataModule(str(tmp_path / "nowhere"))
+    with pytest.raises(ValueError, match="rgns.data.generate"):
+        dm.prepare_data()
+
+
+def test_prepare_data_makes_a_missing_dataset(tmp_path, tiny_dataset):
+    made = []
+
+    def make(root):
+        made.append(root)
+        import shutil
+
+        shutil.copytree(tiny_dataset, root)
+
+    dm = ParticleDataModule(str(tmp_path / "made"), make=make)
+    dm.prepare_data()
+    dm.prepare_data()
+    assert made == [str(tmp_path / "made")]
+    assert dm.metadata["dim"] == 2
