@@ -1,0 +1,1 @@
+"""Training: the LightningModule, loss designs and rollouts used in validation."""
