@@ -97,6 +97,10 @@ def read_metadata(folder: str | os.PathLike) -> dict:
     dim = metadata["dim"]
     if dim not in (2, 3):
         raise DatasetError(f"{path}: key 'dim' must be 2 or 3, got {dim!r}")
+    for key in ("bounds", "vel_mean", "vel_std", "acc_mean", "acc_std"):
+        if not isinstance(metadata[key], list):
+            what = "[low, high] rows" if key == "bounds" else "numbers"
+            raise DatasetError(f"{path}: key '{key}' must be a list of {dim} {what}, got {metadata[key]!r}")
     for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
         if len(metadata[key]) != dim:
             raise DatasetError(f"{path}: key '{key}' has {len(metadata[key])} entries, 'dim' is {dim}")

@@ -84,7 +84,7 @@ class SimulatorModule(L.LightningModule):
                 "stopped; the checkpoints already written are untouched (lower the learning rate or "
                 "resume from the last good one)"
             )
-        self.log_dict({f"train/{k}": v.detach() for k, v in terms.items()}, batch_size=batch.num_graphs, prog_bar=False)
+        self.log_dict({f"train/{k}": v.detach() for k, v in terms.items() if k != "loss"}, batch_size=batch.num_graphs)
         self.log("train/loss", terms["loss"].detach(), batch_size=batch.num_graphs, prog_bar=True)
         return terms["loss"]
 

@@ -30,7 +30,8 @@ def inverse_then_forward(model, position: torch.Tensor, particle_type: torch.Ten
     state = State.from_positions(position[end - k : end + 1], particle_type)
     inferred = []
     for frame in range(end - 1, start - 1, -1):
-        state = model.inverse_step(state, kinematic_position=position[frame])
+        # the oldest velocity predicted at frame f fixes frame f - k: kinematic particles go there
+        state = model.inverse_step(state, kinematic_position=position[frame - k] if frame >= k else None)
         inferred.append(state.position)
     resimulated = model.rollout(state, steps, kinematic_positions=position[start + 1 : end + 1])
     return torch.stack(inferred), resimulated
