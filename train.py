@@ -5,31 +5,25 @@ from __future__ import annotations
 import hydra
 import lightning as L
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from rgns.training.ddp import pin_ddp_children_to_this_job
+from rgns.training.ddp import ddp_job
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float | None:
     L.seed_everything(cfg.seed, workers=True)
-    pin_ddp_children_to_this_job()
 
     datamodule = instantiate(cfg.data)
     datamodule.prepare_data()
-    module = instantiate(
-        cfg.module,
-        model=OmegaConf.to_container(cfg.model, resolve=True),
-        metadata=datamodule.metadata,
-        loss=OmegaConf.to_container(cfg.loss, resolve=True),
-        _recursive_=False,
-    )
+    module = instantiate(cfg.module, model=cfg.model, loss=cfg.loss, metadata=datamodule.metadata, _recursive_=False)
     trainer = instantiate(
         cfg.trainer,
         logger=instantiate(cfg.logger),
         callbacks=[instantiate(c) for c in cfg.callbacks.values()],
     )
-    trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.resume)
+    with ddp_job():
+        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.resume)
 
     best = trainer.checkpoint_callback.best_model_score
     return None if best is None else float(best)

@@ -3,11 +3,13 @@ bidirectional models, the inverse loss (oldest velocity) on the same batch and g
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import lightning as L
 import matplotlib
 import torch
 from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
 
 from rgns.data.contract import KINEMATIC
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
@@ -46,6 +48,11 @@ class SimulatorModule(L.LightningModule):
         val_trajectories: int = 2,
     ):
         super().__init__()
+        # Hydra hands over DictConfigs: store plain values, so checkpoints load with weights_only
+        model, metadata, loss, optimizer, scheduler = (
+            OmegaConf.to_container(c, resolve=True) if isinstance(c, DictConfig) else c
+            for c in (model, metadata, loss, optimizer, scheduler)
+        )
         self.save_hyperparameters()
         model = dict(model)
         train_inverse = model.pop("train_inverse", True)
@@ -152,3 +159,16 @@ class SimulatorModule(L.LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["world_size"] = self.trainer.world_size
+        root = getattr(getattr(self.trainer, "datamodule", None), "root", None)
+        checkpoint["data_root"] = None if root is None else str(Path(root).resolve())
+
+
+def load_simulator(path: str, map_location: str = "cpu"):
+    """The trained simulator (a plain ``nn.Module``, eval mode) and its checkpoint's extras."""
+    module = SimulatorModule.load_from_checkpoint(path, map_location=map_location)
+    extras = torch.load(path, map_location="cpu", weights_only=False)
+    return module.model.eval(), {
+        "data_root": extras.get("data_root"),
+        "global_step": extras.get("global_step"),
+        "hparams": dict(module.hparams),
+    }

@@ -1,0 +1,191 @@
+"""What every rgns simulator shares: the physical state, normalisation, node conditions and
+the rollout loops.
+
+The data contract of a simulator, stated once:
+
+- State at frame t: positions ``p^t [N, D]``, velocity history
+  ``V^t = (v^{t-k+1}, ..., v^t) [N, k, D]``, particle types ``[N]`` (DeepMind's ids), optional
+  PyG ``batch [N]``. Velocities are position differences per frame (dt = 1), physical units.
+- Forward: ``v^{t+1} = next_velocity(p^t, V^t)``; ``p^{t+1} = p^t + v^{t+1}``;
+  ``V^{t+1} = (v^{t-k+2}, ..., v^{t+1})``.
+- Inverse (bidirectional models): from ``(p^{t+1}, V^{t+1})``, ``p^t = p^{t+1} - v^{t+1}`` is
+  exact; ``v^{t-k+1} = oldest_velocity(p^t, V^{t+1})`` is predicted;
+  ``V^t = (v^{t-k+1}, ..., v^t)``.
+- Both directions of the step t <-> t+1 read the same graph: the radius graph of ``p^t``.
+- Kinematic particles (type 3) are conditions: their predicted velocities are replaced by the
+  ones that take them to their known positions (or keep them where they are).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor, nn
+
+from rgns.data.contract import KINEMATIC, NUM_PARTICLE_TYPES
+from rgns.data.graph import batched_radius_graph, wall_distance
+
+
+@dataclass
+class State:
+    """The physical state of a particle system at frame t."""
+
+    position: Tensor  # [N, D], p^t
+    velocity_history: Tensor  # [N, k, D], v^{t-k+1} .. v^t
+    particle_type: Tensor  # [N] int64
+    batch: Tensor | None = None  # [N] graph id per particle, sorted
+
+    @classmethod
+    def from_positions(cls, positions: Tensor, particle_type: Tensor, batch: Tensor | None = None) -> "State":
+        """Build the state at the last of ``k + 1`` frames.
+
+        Shapes:
+            positions: ``[k + 1, N, D]``  ->  position ``[N, D]``, velocity_history ``[N, k, D]``
+        """
+        velocity = positions[1:] - positions[:-1]  # [k, N, D]
+        return cls(positions[-1], velocity.transpose(0, 1).contiguous(), particle_type, batch)
+
+    def to(self, device: torch.device | str) -> "State":
+        return State(*(None if t is None else t.to(device)
+                       for t in (self.position, self.velocity_history, self.particle_type, self.batch)))
+
+
+class Simulator(nn.Module):
+    """Base of the simulators: normalisation buffers from ``metadata`` and the physical loops.
+
+    Subclasses implement :meth:`next_velocity` and, if ``bidirectional``, :meth:`oldest_velocity`.
+
+    Args:
+        metadata (dict): the dataset's ``metadata.json`` (``bounds``, ``dim``,
+            ``default_connectivity_radius``, ``vel_mean``, ``vel_std``, ``acc_mean``, ``acc_std``).
+        history (int, optional): velocities per state, k. (default: :obj:`5`)
+        noise_std (float, optional): training noise, added in quadrature to the stds as in GNS.
+            (default: :obj:`6.7e-4`)
+        embedding (int, optional): width of the particle-type embedding. (default: :obj:`16`)
+    """
+
+    bidirectional: bool = False
+
+    def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, embedding: int = 16):
+        super().__init__()
+        self.history = history
+        self.dim = int(metadata["dim"])
+        self.radius = float(metadata["default_connectivity_radius"])
+
+        def stat(key: str) -> Tensor:
+            return torch.as_tensor(metadata[key], dtype=torch.float32)
+
+        self.register_buffer("bounds", stat("bounds"))  # [D, 2]
+        self.register_buffer("vel_mean", stat("vel_mean"))  # [D]
+        self.register_buffer("vel_std_noisy", (stat("vel_std") ** 2 + noise_std**2).sqrt())
+        self.register_buffer("acc_mean", stat("acc_mean"))
+        self.register_buffer("acc_std_noisy", (stat("acc_std") ** 2 + noise_std**2).sqrt())
+        self.type_embedding = nn.Embedding(NUM_PARTICLE_TYPES, embedding)
+
+    @property
+    def condition_channels(self) -> int:
+        """Width of :meth:`node_conditions`: type embedding and two wall distances per axis."""
+        return self.type_embedding.embedding_dim + 2 * self.dim
+
+    def node_conditions(self, position: Tensor, particle_type: Tensor) -> Tensor:
+        """Static node inputs: distance to the walls over R, clipped to [-1, 1], and the type embedding.
+
+        Shapes:
+            position: ``[N, D]``, particle_type: ``[N]``  ->  ``[N, 2 D + embedding]``
+        """
+        walls = wall_distance(position, self.bounds, self.radius)  # [N, 2D]
+        return torch.cat([walls, self.type_embedding(particle_type)], dim=-1)
+
+    def normalise_velocity(self, velocity: Tensor) -> Tensor:
+        return (velocity - self.vel_mean) / self.vel_std_noisy
+
+    def denormalise_velocity(self, velocity: Tensor) -> Tensor:
+        return velocity * self.vel_std_noisy + self.vel_mean
+
+    def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                      edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
+        """Predict ``v^{t+1} [N, D]`` from ``p^t [N, D]`` and ``V^t [N, k, D]`` on the radius graph of ``p^t``."""
+        raise NotImplementedError
+
+    def oldest_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                        edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
+        """Predict ``v^{t-k+1} [N, D]`` from ``p^t [N, D]`` and ``V^{t+1} [N, k, D]`` on the radius graph of ``p^t``."""
+        raise NotImplementedError(f"{type(self).__name__} simulates forward in time only")
+
+    # ---- the physical loops -------------------------------------------------------------------
+
+    def graph(self, position: Tensor, batch: Tensor | None = None) -> Tensor:
+        """Radius graph of ``position`` (scipy on the CPU), on the model's device.  ``[2, E]``"""
+        return batched_radius_graph(position, self.radius, batch).to(position.device)
+
+    def step(self, state: State, kinematic_position: Tensor | None = None) -> State:
+        """Advance one frame: ``(p^t, V^t) -> (p^{t+1}, V^{t+1})``.
+
+        ``kinematic_position [N, D]``: positions of frame t+1 imposed on kinematic particles
+        (others' rows are ignored); ``None`` keeps them where they are.
+        """
+        position, history = state.position, state.velocity_history
+        edge_index = self.graph(position, state.batch)
+        velocity = self.next_velocity(position, history, state.particle_type, edge_index, state.batch)  # [N, D]
+        kinematic = (state.particle_type == KINEMATIC).unsqueeze(-1)
+        imposed = torch.zeros_like(position) if kinematic_position is None else kinematic_position - position
+        velocity = torch.where(kinematic, imposed, velocity)
+        history = torch.cat([history[:, 1:], velocity.unsqueeze(1)], dim=1)  # [N, k, D]
+        return replace(state, position=position + velocity, velocity_history=history)  # dt = 1
+
+    def inverse_step(self, state: State, kinematic_position: Tensor | None = None) -> State:
+        """Go back one frame: ``(p^{t+1}, V^{t+1}) -> (p^t, V^t)``.
+
+        ``p^t = p^{t+1} - v^{t+1}`` is exact; the network predicts the oldest velocity
+        ``v^{t-k+1}``, which fixes the position of frame ``t-k``
+        (``p^{t-k} = p^{t+1} - sum(V^{t+1}) - v^{t-k+1}``). ``kinematic_position [N, D]`` are the
+        kinematic particles' positions at that frame, ``t-k``; ``None`` keeps them still there.
+        """
+        history = state.velocity_history
+        position = state.position - history[:, -1]  # p^t, exact
+        edge_index = self.graph(position, state.batch)
+        velocity = self.oldest_velocity(position, history, state.particle_type, edge_index, state.batch)  # [N, D]
+        kinematic = (state.particle_type == KINEMATIC).unsqueeze(-1)
+        if kinematic_position is None:
+            imposed = torch.zeros_like(position)
+        else:
+            imposed = (state.position - history.sum(dim=1)) - kinematic_position  # p^{t-k+1} - p^{t-k}
+        velocity = torch.where(kinematic, imposed, velocity)
+        history = torch.cat([velocity.unsqueeze(1), history[:, :-1]], dim=1)  # [N, k, D]
+        return replace(state, position=position, velocity_history=history)
+
+    @torch.no_grad()
+    def rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None) -> Tensor:
+        """Positions of frames t+1 .. t+steps.  ``kinematic_positions [steps, N, D]`` -> ``[steps, N, D]``"""
+        positions = []
+        for i in range(steps):
+            state = self.step(state, None if kinematic_positions is None else kinematic_positions[i])
+            positions.append(state.position)
+        return torch.stack(positions)
+
+    @torch.no_grad()
+    def inverse_rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None) -> Tensor:
+        """Positions of frames t-1, t-2, .., t-steps (going back in time).
+
+        ``kinematic_positions [steps, N, D]``: kinematic positions of those frames (row i is frame
+        t-1-i); frames t-1 .. t-k follow from the state's own velocity history.
+        """
+        if not self.bidirectional:
+            raise NotImplementedError(f"{type(self).__name__} simulates forward in time only")
+        positions = []
+        for i in range(steps):
+            j = i + self.history  # the frame this step's predicted velocity fixes: t-1-j
+            known = None if kinematic_positions is None or j >= steps else kinematic_positions[j]
+            state = self.inverse_step(state, known)
+            positions.append(state.position)
+        return torch.stack(positions)
+
+    def extra_repr(self) -> str:
+        return f"dim={self.dim}, history={self.history}, radius={self.radius:g}"
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+__all__ = ["State", "Simulator", "count_parameters"]

@@ -1,0 +1,58 @@
+"""GNS: the Graph Network Simulator of Sanchez-Gonzalez et al. (2020), as in DeepMind's
+``learning_to_simulate/learned_simulator.py``."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from rgns.data.graph import edge_features
+from rgns.models.base import Simulator
+from rgns.nn import InteractionNetwork, mlp
+
+
+class GNS(Simulator):
+    """Encode-process-decode on the radius graph of ``p^t``; predicts the normalised acceleration.
+
+    - encode: node MLP on ``[normalised V^t (k D), wall distances (2 D), type embedding]``,
+      edge MLP on ``[(p_j - p_i) / R, |p_j - p_i| / R]``;
+    - process: ``layers`` unshared :class:`~rgns.nn.InteractionNetwork` steps;
+    - decode: MLP without LayerNorm to the normalised acceleration;
+      ``v^{t+1} = v^t + a^{t+1}``.
+
+    Args:
+        metadata, history, noise_std, embedding: see :class:`~rgns.models.base.Simulator`.
+        latent (int, optional): latent width. (default: :obj:`128`)
+        layers (int, optional): message-passing steps. (default: :obj:`10`)
+        hidden_layers (int, optional): hidden layers per MLP. (default: :obj:`2`)
+    """
+
+    def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
+                 layers: int = 10, hidden_layers: int = 2, embedding: int = 16):
+        super().__init__(metadata, history, noise_std, embedding)
+        node_in = history * self.dim + self.condition_channels
+        self.node_encoder = mlp(node_in, latent, latent, hidden_layers)
+        self.edge_encoder = mlp(self.dim + 1, latent, latent, hidden_layers)
+        self.processor = nn.ModuleList(InteractionNetwork(latent, hidden_layers) for _ in range(layers))
+        self.decoder = mlp(latent, latent, self.dim, hidden_layers, layer_norm=False)
+
+    def encode(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+               edge_index: Tensor) -> tuple[Tensor, Tensor]:
+        velocities = self.normalise_velocity(velocity_history).flatten(1)  # [N, k D]
+        nodes = torch.cat([velocities, self.node_conditions(position, particle_type)], dim=-1)
+        edges = edge_features(position, edge_index, self.radius)  # [E, D + 1]
+        return self.node_encoder(nodes), self.edge_encoder(edges)  # [N, C], [E, C]
+
+    def process(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
+        for layer in self.processor:
+            x, edge_attr = layer(x, edge_index, edge_attr)
+        return x
+
+    def decode(self, x: Tensor) -> Tensor:
+        return self.decoder(x) * self.acc_std_noisy + self.acc_mean  # [N, D], physical acceleration
+
+    def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                      edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
+        x, edge_attr = self.encode(position, velocity_history, particle_type, edge_index)
+        x = self.process(x, edge_index, edge_attr)
+        acceleration = self.decode(x)
+        return velocity_history[:, -1] + acceleration  # dt = 1

@@ -1,0 +1,92 @@
+"""R-GNS: the Reversible Graph Network Simulator."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from rgns.data.graph import edge_features
+from rgns.models.base import Simulator
+from rgns.nn import ILP, RRMP, MLPEncoderDecoder, mlp
+
+
+class RGNS(Simulator):
+    r"""One network for both directions of time: ILP encoder, RRMP processor, ILP decoder.
+
+    Semi-symmetric input-output design: the node features are the normalised velocity history
+    ``x = V [N, k D]``; the conditions (edge features of the graph of ``p^t``, type embedding,
+    wall distances) are the same in both directions and never updated. Forward,
+    ``V' = decode(RRMP(encode(V^t)))`` and only its newest slot is kept as ``v^{t+1}``; inverse,
+    ``V = decode(RRMP^{-1}(encode(V^{t+1})))`` and only its oldest slot is kept as ``v^{t-k+1}``.
+    At initialisation every coupling outputs zero, so the latent map is the identity and both
+    directions start from constant-velocity extrapolation.
+
+    R-GNS† (forward-only training) is this model trained with the forward loss alone.
+
+    Args:
+        metadata, history, noise_std, embedding: see :class:`~rgns.models.base.Simulator`.
+        latent (int, optional): latent width, split in two halves by RRMP. (default: :obj:`128`)
+        layers (int, optional): reversible blocks. (default: :obj:`10`)
+        hidden (int, optional): MLP hidden width in the couplings. (default: ``latent // 2``)
+        hidden_layers (int, optional): hidden layers per MLP. (default: :obj:`2`)
+        encoder (str, optional): ``"ilp"`` (the paper's) or ``"mlp"`` (ablation). (default: ``"ilp"``)
+        edges (str, optional): ``"fixed"`` (the paper's) or ``"updated"`` per layer from the
+            conditions only (ablation). (default: ``"fixed"``)
+        memory_saving (bool, optional): GroupAddRev's memory-saving backward in training.
+            (default: :obj:`True`)
+        zero_init (bool, optional): start at the identity latent map. (default: :obj:`True`)
+    """
+
+    bidirectional = True
+
+    def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
+                 layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
+                 edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, embedding: int = 16):
+        super().__init__(metadata, history, noise_std, embedding)
+        node_in = history * self.dim
+        if encoder == "ilp":
+            self.projection = ILP(node_in, latent)
+        elif encoder == "mlp":
+            self.projection = MLPEncoderDecoder(node_in, latent, hidden_layers)
+        else:
+            raise ValueError(f"encoder must be 'ilp' or 'mlp', got {encoder!r}")
+        # edge latent: geometry of the edge and the conditions of both ends, encoded once per step
+        self.edge_encoder = mlp(self.dim + 1 + 2 * self.condition_channels, latent, latent, hidden_layers)
+        self.processor = RRMP(latent, layers, self.condition_channels, hidden, hidden_layers, edges,
+                              memory_saving, zero_init)
+
+    def conditions(self, position: Tensor, particle_type: Tensor, edge_index: Tensor) -> tuple[Tensor, Tensor]:
+        """The fixed conditions of a step: edge latents ``[E, C]`` and node conditions ``[N, 2D + embedding]``."""
+        condition = self.node_conditions(position, particle_type)  # [N, 2D + embedding]
+        sender, receiver = edge_index
+        edges = torch.cat([edge_features(position, edge_index, self.radius), condition[receiver], condition[sender]],
+                          dim=-1)  # [E, D + 1 + 2 (2D + embedding)]
+        return self.edge_encoder(edges), condition
+
+    def encode(self, velocity_history: Tensor) -> Tensor:
+        return self.projection.encode(self.normalise_velocity(velocity_history).flatten(1))  # [N, k D] -> [N, C]
+
+    def decode(self, latent: Tensor) -> Tensor:
+        x = self.projection.decode(latent).unflatten(1, (self.history, self.dim))  # [N, k, D]
+        return self.denormalise_velocity(x)
+
+    def forward_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                        edge_index: Tensor) -> Tensor:
+        """The unmasked forward output: ``V^t [N, k, D] -> decode(RRMP(encode(V^t))) [N, k, D]``."""
+        edge_attr, condition = self.conditions(position, particle_type, edge_index)
+        latent = self.processor(self.encode(velocity_history), edge_index, edge_attr, condition)
+        return self.decode(latent)
+
+    def inverse_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                        edge_index: Tensor) -> Tensor:
+        """The unmasked inverse output: ``V^{t+1} [N, k, D] -> decode(RRMP^{-1}(encode(V^{t+1}))) [N, k, D]``."""
+        edge_attr, condition = self.conditions(position, particle_type, edge_index)
+        latent = self.processor.inverse(self.encode(velocity_history), edge_index, edge_attr, condition)
+        return self.decode(latent)
+
+    def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                      edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
+        return self.forward_history(position, velocity_history, particle_type, edge_index)[:, -1]  # newest slot
+
+    def oldest_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                        edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
+        return self.inverse_history(position, velocity_history, particle_type, edge_index)[:, 0]  # oldest slot

@@ -1,0 +1,273 @@
+"""The simulators: the training contract, exactness of the physical inverse, parameter counts,
+memory saving, rollouts and kinematic particles."""
+from __future__ import annotations
+
+import pytest
+import torch
+from torch_geometric.data import Batch, Data
+
+from rgns.data.contract import KINEMATIC, WATER
+from rgns.data.graph import radius_graph
+from rgns.models import GNS, RGNS, SepGNS, State, count_parameters
+
+torch.set_num_threads(1)
+K = 5
+SMALL = dict(latent=16, layers=2)
+
+
+def metadata(dim: int = 2, radius: float = 0.1) -> dict:
+    return dict(bounds=[[0.1, 0.9]] * dim, default_connectivity_radius=radius, dim=dim, dt=0.0025,
+                sequence_length=100, vel_mean=[1e-4] * dim, vel_std=[1e-3] * dim, acc_mean=[0.0] * dim,
+                acc_std=[1e-4] * dim)
+
+
+def random_state(particles: int = 80, dim: int = 2, kinematic: int = 8, seed: int = 0, graphs: int = 1) -> State:
+    """A state in the box: Brownian velocities, the last ``kinematic`` particles of each graph static."""
+    generator = torch.Generator().manual_seed(seed)
+    position = 0.15 + 0.7 * torch.rand(graphs * particles, dim, generator=generator)
+    velocity = 2e-3 * torch.randn(graphs * particles, K, dim, generator=generator)
+    particle_type = torch.full((particles,), WATER)
+    particle_type[particles - kinematic:] = KINEMATIC
+    particle_type = particle_type.repeat(graphs)
+    velocity[particle_type == KINEMATIC] = 0.0
+    batch = torch.arange(graphs).repeat_interleave(particles) if graphs > 1 else None
+    return State(position, velocity, particle_type, batch)
+
+
+def perturb(module: torch.nn.Module, scale: float = 0.1, seed: int = 0) -> None:
+    """Move every parameter off its initialisation (R-GNS starts as the identity map)."""
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for parameter in module.parameters():
+            parameter.add_(scale * torch.randn(parameter.shape, generator=generator))
+
+
+def training_batch(dim: int = 2, graphs: int = 2, seed: int = 0) -> Batch:
+    """A batch with the fields rgns.data.windows produces."""
+    samples = []
+    for g in range(graphs):
+        state = random_state(particles=40 + 10 * g, dim=dim, seed=seed + g)
+        velocity = state.velocity_history
+        samples.append(Data(pos=state.position, edge_index=radius_graph(state.position, 0.1),
+                            particle_type=state.particle_type, forward_input=velocity,
+                            forward_target=velocity[:, -1] + 1e-4, inverse_input=torch.roll(velocity, -1, 1),
+                            inverse_target=velocity[:, 0] - 1e-4))
+    return Batch.from_data_list(samples)
+
+
+# ---- the contract with training ---------------------------------------------------------------
+
+@pytest.mark.parametrize("cls", [GNS, RGNS, SepGNS])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_contract_on_a_training_batch(cls, dim):
+    torch.manual_seed(0)
+    model = cls(metadata(dim), history=K, **SMALL)
+    perturb(model)
+    assert model.history == K and model.radius == 0.1 and model.acc_std_noisy.shape == (dim,)
+    assert cls.bidirectional == (cls is not GNS)
+    batch = training_batch(dim)
+    args = (batch.pos, batch.forward_input, batch.particle_type, batch.edge_index, batch.batch)
+    forward_input = batch.forward_input.clone()
+    prediction = model.next_velocity(*args)
+    assert prediction.shape == batch.forward_target.shape
+    fluid = batch.particle_type != KINEMATIC
+    loss = (((prediction - batch.forward_target) / model.acc_std_noisy)[fluid] ** 2).mean()
+    if model.bidirectional:
+        inverse = model.oldest_velocity(batch.pos, batch.inverse_input, batch.particle_type, batch.edge_index,
+                                        batch.batch)
+        assert inverse.shape == batch.inverse_target.shape
+        loss = loss + (((inverse - batch.inverse_target) / model.acc_std_noisy)[fluid] ** 2).mean()
+    else:
+        with pytest.raises(NotImplementedError):
+            model.oldest_velocity(*args)
+    loss.backward()
+    assert torch.equal(batch.forward_input, forward_input)  # inputs are left intact (memory saving)
+    assert torch.isfinite(loss)
+    for name, parameter in model.named_parameters():
+        assert parameter.grad is not None and parameter.grad.abs().sum() > 0, name
+
+
+def test_graphs_of_a_batch_do_not_interact():
+    torch.manual_seed(0)
+    model = RGNS(metadata(), **SMALL)
+    perturb(model)
+    batch = training_batch(graphs=2)
+    both = model.next_velocity(batch.pos, batch.forward_input, batch.particle_type, batch.edge_index, batch.batch)
+    first = batch.get_example(0)
+    alone = model.next_velocity(first.pos, first.forward_input, first.particle_type, first.edge_index)
+    torch.testing.assert_close(both[: first.num_nodes], alone, rtol=0, atol=1e-6)
+
+
+def test_rgns_starts_as_constant_velocity_in_both_directions():
+    model = RGNS(metadata(), history=K, **SMALL)
+    state = random_state()
+    edge_index = radius_graph(state.position, model.radius)
+    args = (state.position, state.velocity_history, state.particle_type, edge_index)
+    torch.testing.assert_close(model.next_velocity(*args), state.velocity_history[:, -1], rtol=0, atol=1e-8)
+    torch.testing.assert_close(model.oldest_velocity(*args), state.velocity_history[:, 0], rtol=0, atol=1e-8)
+
+
+def test_rgns_forward_only_training_trains_the_same_network():
+    """R-GNS† is a training option: the forward loss alone reaches every parameter."""
+    model = RGNS(metadata(), **SMALL)
+    perturb(model)
+    batch = training_batch()
+    model.next_velocity(batch.pos, batch.forward_input, batch.particle_type, batch.edge_index).sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
+
+
+# ---- exactness --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("encoder", ["ilp", "mlp"])
+def test_inverse_step_recovers_position_and_known_history_exactly(dim, encoder):
+    torch.manual_seed(dim)
+    model = RGNS(metadata(dim), latent=16, layers=10, encoder=encoder)
+    perturb(model, seed=dim)
+    state = random_state(dim=dim, seed=dim)
+    back = model.inverse_step(model.step(state))
+    torch.testing.assert_close(back.position, state.position, rtol=0, atol=1e-6)  # p^t = p^{t+1} - v^{t+1}
+    assert torch.equal(back.velocity_history[:, 1:], state.velocity_history[:, 1:])  # the masked slots
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_unmasked_history_round_trip_is_exact_up_to_the_ilp_projection(dim, seed):
+    """inverse_history(forward_history(V)) differs from V only because decoding then encoding
+    projects the latent onto the range of W; the latent round trip itself is exact."""
+    torch.manual_seed(seed)
+    model = RGNS(metadata(dim), latent=16, layers=10)
+    state = random_state(dim=dim, seed=seed)
+    edge_index = radius_graph(state.position, model.radius)
+    graph = (state.position, state.particle_type, edge_index)
+    with torch.no_grad():
+        identity = model.inverse_history(state.position, model.forward_history(state.position, state.velocity_history,
+                                                                                state.particle_type, edge_index),
+                                         state.particle_type, edge_index)
+        scale = state.velocity_history.abs().max()
+        torch.testing.assert_close(identity, state.velocity_history, rtol=0, atol=1e-6 * scale)  # at init
+
+        perturb(model, seed=seed)
+        edge_attr, condition = model.conditions(*graph)
+        latent = model.encode(state.velocity_history)
+        moved = model.processor(latent, edge_index, edge_attr, condition)
+        torch.testing.assert_close(model.processor.inverse(moved, edge_index, edge_attr, condition), latent,
+                                   rtol=0, atol=1e-5)
+        projected = model.projection.encode(model.projection.decode(moved))
+        expected = model.decode(model.processor.inverse(projected, edge_index, edge_attr, condition))
+        forward = model.forward_history(state.position, state.velocity_history, state.particle_type, edge_index)
+        round_trip = model.inverse_history(state.position, forward, state.particle_type, edge_index)
+        torch.testing.assert_close(round_trip, expected, rtol=0, atol=1e-5 * scale)
+        assert (moved - projected).abs().max() > 1e-2  # the projection is the whole gap, and it is not zero
+
+
+@pytest.mark.parametrize("options", [dict(), dict(encoder="mlp"), dict(edges="updated")])
+def test_rgns_memory_saving_gradients_equal_plain_gradients(options):
+    torch.manual_seed(0)
+    model = RGNS(metadata(3), latent=16, layers=3, **options)
+    perturb(model)
+    batch = training_batch(dim=3)
+
+    def gradients(memory_saving):
+        model.processor.memory_saving = memory_saving
+        model.zero_grad()
+        graph = (batch.particle_type, batch.edge_index)
+        forward = model.next_velocity(batch.pos, batch.forward_input, *graph)
+        inverse = model.oldest_velocity(batch.pos, batch.inverse_input, *graph)
+        loss = (((forward - batch.forward_target) / model.acc_std_noisy) ** 2).mean() \
+            + (((inverse - batch.inverse_target) / model.acc_std_noisy) ** 2).mean()
+        loss.backward()
+        return loss.detach(), [p.grad.clone() for p in model.parameters()]
+
+    saving_loss, saving = gradients(True)
+    plain_loss, plain = gradients(False)
+    torch.testing.assert_close(saving_loss, plain_loss)
+    for a, b in zip(saving, plain):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6 * b.abs().max().item())
+
+
+# ---- sizes ------------------------------------------------------------------------------------
+
+def test_parameter_counts_at_the_paper_sizes():
+    gns, rgns, sep_gns = (count_parameters(cls(metadata())) for cls in (GNS, RGNS, SepGNS))
+    assert abs(gns - 1.59e6) / 1.59e6 < 0.01  # DeepMind's GNS at latent 128, 10 layers
+    assert abs(rgns - 0.78e6) / 0.78e6 < 0.05 and 0.45 < rgns / gns < 0.55  # paper: 0.78 M, half a GNS
+    assert sep_gns == 2 * gns
+    model = RGNS(metadata())
+    assert len(model.processor.blocks) == 10 and model.projection.weight.shape == (128, 10)
+
+
+def test_every_size_is_a_constructor_argument():
+    small = RGNS(metadata(), history=3, latent=24, layers=4, hidden=8, hidden_layers=1)
+    assert small.history == 3 and len(small.processor.blocks) == 4 and small.projection.weight.shape == (24, 6)
+    assert count_parameters(GNS(metadata(), latent=32, layers=3)) < count_parameters(GNS(metadata(), latent=32))
+
+
+def test_sep_gns_backward_network_runs_on_reversed_time():
+    """With a zero acceleration the backward GNS extrapolates the oldest velocity at constant velocity."""
+    model = SepGNS(metadata(), **SMALL)
+    with torch.no_grad():
+        model.backward_gns.decoder[-1].weight.zero_()
+        model.backward_gns.decoder[-1].bias.zero_()
+    state = random_state()
+    edge_index = radius_graph(state.position, model.radius)
+    oldest = model.oldest_velocity(state.position, state.velocity_history, state.particle_type, edge_index)
+    torch.testing.assert_close(oldest, state.velocity_history[:, 0], rtol=0, atol=1e-8)
+    assert model.backward_gns.vel_mean.neg().equal(model.forward_gns.vel_mean)
+
+
+# ---- rollouts ---------------------------------------------------------------------------------
+
+def test_state_from_positions():
+    positions = torch.rand(K + 1, 10, 2)
+    state = State.from_positions(positions, torch.full((10,), WATER))
+    assert torch.equal(state.position, positions[-1])
+    assert state.velocity_history.shape == (10, K, 2)
+    torch.testing.assert_close(state.velocity_history[:, -1], positions[-1] - positions[-2])
+
+
+@pytest.mark.parametrize("cls", [GNS, RGNS, SepGNS])
+def test_rollouts_move_kinematic_particles_only_as_told(cls):
+    torch.manual_seed(0)
+    model = cls(metadata(), **SMALL)
+    perturb(model)
+    state = random_state(graphs=2)
+    before = state.velocity_history.clone()
+    kinematic = state.particle_type == KINEMATIC
+    steps = 8
+    still = model.rollout(state, steps)
+    assert still.shape == (steps, *state.position.shape)
+    assert torch.equal(still[:, kinematic], state.position[kinematic].expand(steps, -1, -1))
+    assert not torch.equal(still[:, ~kinematic], state.position[~kinematic].expand(steps, -1, -1))
+    moving = state.position + 1e-3 * torch.arange(1, steps + 1).view(-1, 1, 1)  # [steps, N, D]
+    torch.testing.assert_close(model.rollout(state, steps, moving)[:, kinematic], moving[:, kinematic])
+    assert torch.equal(state.velocity_history, before)  # the state is not consumed
+    if not model.bidirectional:
+        return
+    back = model.inverse_rollout(state, steps)
+    assert back.shape == (steps, *state.position.shape)
+    torch.testing.assert_close(back[:, kinematic], state.position[kinematic].expand(steps, -1, -1))
+    earlier = state.position - 1e-3 * torch.arange(1, steps + 1).view(-1, 1, 1)  # frames t-1 .. t-steps
+    state.velocity_history[kinematic] = 1e-3  # consistent with the earlier kinematic frames
+    back = model.inverse_rollout(state, steps, earlier)
+    torch.testing.assert_close(back[:, kinematic], earlier[:, kinematic], rtol=0, atol=1e-6)
+
+
+def test_inverse_rollout_undoes_a_forward_rollout_at_constant_velocity():
+    model = RGNS(metadata())  # untrained: the identity latent map, exactly reversible physics
+    state = random_state(particles=60)
+    ahead = model.rollout(state, 6)
+    last = State.from_positions(ahead[-K - 1:], state.particle_type)
+    back = model.inverse_rollout(last, 6)  # frames t+5, .., t+1, t
+    torch.testing.assert_close(back[:5], ahead[:5].flip(0), rtol=0, atol=1e-6)
+    torch.testing.assert_close(back[5], state.position, rtol=0, atol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_models_run_on_cuda():
+    for cls in (GNS, RGNS, SepGNS):
+        model = cls(metadata(), **SMALL).cuda()
+        state = random_state().to("cuda")
+        assert model.rollout(state, 2).device.type == "cuda"
+        if model.bidirectional:
+            assert model.inverse_rollout(state, 2).device.type == "cuda"

@@ -1,0 +1,148 @@
+"""Smoke tests of train.py: sweeps over loss designs and ablations, DDP on two CPU ranks,
+resume after a kill, and a non-finite loss. Each runs train.py as a user would."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from rgns.data.contract import SPLITS, write_metadata, write_split
+
+from conftest import make_metadata, random_trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["model.latent=16", "model.layers=2", "data.num_workers=0", "trainer.log_every_n_steps=1"]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("data")
+    rng = np.random.default_rng(0)
+    for split, count in zip(SPLITS, (2, 1, 1)):
+        write_split(root / f"{split}.h5", [random_trajectory(rng, frames=30) for _ in range(count)])
+    write_metadata(root, make_metadata(frames=30))
+    return root
+
+
+def train(cwd: Path, *overrides: str, check: bool = True, **popen) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="1")
+    command = [sys.executable, str(ROOT / "train.py"), *overrides]
+    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, check=check, timeout=600, **popen)
+
+
+def scalar_tags(run: Path) -> set[str]:
+    events = EventAccumulator(str(run / "tensorboard"))
+    events.Reload()
+    return set(events.Tags()["scalars"])
+
+
+def sweep_runs(cwd: Path) -> list[Path]:
+    (sweep,) = (cwd / "multirun").iterdir()
+    return sorted(p for p in sweep.iterdir() if p.is_dir())
+
+
+def test_loss_sweep_writes_one_run_per_design(dataset, tmp_path):
+    train(tmp_path, "-m", "loss=dl1,dl2,dl3,dl4", "data=folder", f"data.root={dataset}", "trainer=cpu",
+          "trainer.max_steps=20", "trainer.val_check_interval=10", *TINY)
+    runs = sweep_runs(tmp_path)
+    assert len(runs) == 4
+    names = []
+    for run in runs:
+        assert (run / "checkpoints" / "last.ckpt").is_file()
+        tags = scalar_tags(run)
+        assert {"train/forward_mse", "train/inverse_mse", "val/loss", "val/rollout_mse", "val/consistency_mse"} <= tags
+        names.append(torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["hyper_parameters"]["loss"]["name"])
+    assert sorted(names) == ["DL1", "DL2", "DL3", "DL4"]
+    assert "train/forward_mmd" in scalar_tags(runs[0]) and "train/forward_cosine" in scalar_tags(runs[1])
+
+
+def test_ablation_sweep_encoder_and_edges(dataset, tmp_path):
+    train(tmp_path, "-m", "model.encoder=ilp,mlp", "model.edges=fixed,updated", "data=folder", f"data.root={dataset}",
+          "trainer=cpu", "trainer.max_steps=10", "trainer.val_check_interval=10", *TINY)
+    runs = sweep_runs(tmp_path)
+    assert len(runs) == 4
+    seen = set()
+    for run in runs:
+        model = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["hyper_parameters"]["model"]
+        seen.add((model["encoder"], model["edges"]))
+        assert {"train/forward_mse", "train/inverse_mse"} <= scalar_tags(run)
+    assert seen == {("ilp", "fixed"), ("ilp", "updated"), ("mlp", "fixed"), ("mlp", "updated")}
+
+
+def test_every_model_trains(dataset, tmp_path):
+    train(tmp_path, "-m", "model=gns,sep_gns,rgns_forward_only", "data=folder", f"data.root={dataset}", "trainer=cpu",
+          "trainer.max_steps=6", "trainer.val_check_interval=6", *TINY)
+    runs = sweep_runs(tmp_path)
+    assert len(runs) == 3
+    tags = [scalar_tags(run) for run in runs]
+    assert "train/inverse_mse" not in tags[0]  # GNS: forward only
+    assert "train/inverse_mse" in tags[1]  # Sep-GNS trains its backward GNS in the same step
+    assert "train/inverse_mse" not in tags[2] and "val/inverse_mse" in tags[2]  # R-GNS†
+
+
+def test_ddp_sweep_runs_each_job_once_on_two_ranks(dataset, tmp_path):
+    train(tmp_path, "-m", "loss=dl1,dl4", "trainer=ddp_sim", "trainer.max_steps=10", "trainer.val_check_interval=5",
+          "data=folder", f"data.root={dataset}", *TINY)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["multirun"]  # no stray run folders
+    runs = sweep_runs(tmp_path)
+    assert [p.name for p in runs] == ["0", "1"]
+    for run in runs:
+        checkpoint = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+        assert checkpoint["world_size"] == 2
+        assert checkpoint["global_step"] == 10
+        assert (run / "train_ddp_process_1.log").is_file()  # rank 1 ran this job, in this folder
+
+
+def test_resume_after_kill_continues_from_last_checkpoint(dataset, tmp_path):
+    run = tmp_path / "run"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    command = [sys.executable, str(ROOT / "train.py"), "data=folder", f"data.root={dataset}", "trainer=cpu",
+               "trainer.max_steps=100000", "trainer.val_check_interval=5", f"hydra.run.dir={run}", *TINY]
+    process = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    last = run / "checkpoints" / "last.ckpt"
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline:
+            time.sleep(0.5)
+            if last.is_file() and torch.load(last, weights_only=False)["global_step"] >= 10:
+                break
+        else:
+            pytest.fail("no checkpoint at step 10 within 300 s")
+    finally:
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+    killed = torch.load(last, weights_only=False)
+    step = killed["global_step"]
+    adam_step = float(next(iter(killed["optimizer_states"][0]["state"].values()))["step"])
+    assert adam_step == step
+
+    resumed_dir = tmp_path / "resumed"
+    train(tmp_path, "data=folder", f"data.root={dataset}", "trainer=cpu", f"trainer.max_steps={step + 5}",
+          "trainer.val_check_interval=5", f"resume={last}", f"hydra.run.dir={resumed_dir}", *TINY)
+    resumed = torch.load(resumed_dir / "checkpoints" / "last.ckpt", weights_only=False)
+    assert resumed["global_step"] == step + 5  # continued, did not start over
+    # Adam's own step count continued too: its state came back with the weights
+    assert float(next(iter(resumed["optimizer_states"][0]["state"].values()))["step"]) == step + 5
+
+
+def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(dataset, tmp_path):
+    run = tmp_path / "run"
+    common = ["data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.val_check_interval=5",
+              f"hydra.run.dir={run}", *TINY]
+    train(tmp_path, *common, "trainer.max_steps=10")
+    last = run / "checkpoints" / "last.ckpt"
+    before = last.read_bytes()
+    # the same run continued with a loss weight that makes the loss NaN at its first step
+    failed = train(tmp_path, *common, "trainer.max_steps=20", f"resume={last}", "module.inverse_weight=nan", check=False)
+    assert failed.returncode != 0
+    assert "non-finite training loss" in failed.stderr
+    assert last.read_bytes() == before
+    assert torch.load(last, weights_only=False)["global_step"] == 10
