@@ -1,4 +1,5 @@
-import numpy as np
+import shutil
+
 import pytest
 import torch
 
@@ -84,11 +85,9 @@ def test_missing_dataset_names_the_command(tmp_path):
 def test_prepare_data_makes_a_missing_dataset(tmp_path, tiny_dataset):
     made = []
 
-    def make(root):
-        made.append(root)
-        import shutil
-
-        shutil.copytree(tiny_dataset, root)
+    def make(out_dir):
+        made.append(out_dir)
+        shutil.copytree(tiny_dataset, out_dir)
 
     dm = ParticleDataModule(str(tmp_path / "made"), make=make)
     dm.prepare_data()

@@ -17,8 +17,9 @@ class ParticleDataModule(L.LightningDataModule):
 
     Args:
         root: the dataset folder (``metadata.json`` + ``{train,valid,test}.h5``).
-        make: called with ``root`` by ``prepare_data`` when the folder has no ``metadata.json``
-            (generation or conversion); ``None`` means the dataset must already exist.
+        make: called as ``make(out_dir=root)`` by ``prepare_data`` when the folder has no
+            ``metadata.json`` (e.g. a partial of :func:`rgns.data.generate.generate_dataset`);
+            ``None`` means the dataset must already exist.
         history: k, velocities per history.
         noise_std: random-walk noise on training windows.
         batch_size: graphs per batch (the paper's is 2).
@@ -50,7 +51,7 @@ class ParticleDataModule(L.LightningDataModule):
                 f"`python -m rgns.data.generate scene=waterdrop out_dir={self.root}` or convert "
                 f"DeepMind's files with `python -m rgns.data.convert SRC_DIR {self.root}`"
             )
-        self.make(str(self.root))
+        self.make(out_dir=str(self.root))
 
     @property
     def metadata(self) -> dict:

@@ -1,0 +1,203 @@
+"""Generate a scene's dataset: ``python -m rgns.data.generate scene=NAME out_dir=DIR``.
+
+Command line (Hydra overrides of ``conf/generate.yaml``; nothing is written to the cwd)::
+
+    python -m rgns.data.generate scene=waterdrop out_dir=data/waterdrop \
+        [num_trajectories=N] [num_frames=T] [seed=S] [workers=2] [arch=cpu] [scene.splits.valid=4 ...]
+
+Python::
+
+    from rgns.data.generate import generate_dataset
+    generate_dataset("waterdrop", "data/waterdrop", num_trajectories=None, num_frames=None,
+                     seed=0, workers=2, arch="cpu", progress=True) -> Path
+
+``scene`` is a config name under ``conf/scene/`` (``waterdrop``, ``waterdrop_full``,
+``waterramps``, ``sand``, ``water3d``, ``dambreak``, each ``*_full`` at the original scale) or a
+scene config mapping. ``num_trajectories`` sets the train split's size (valid and test keep the
+scene's ``splits``); ``num_frames`` the frames per trajectory (``sequence_length + 1``); ``None``
+keeps the scene's values.
+
+What it guarantees:
+
+- the same (scene, sizes, seed) gives the same bytes, whatever ``workers``: trajectory ``i`` of a
+  split draws from ``numpy.random.default_rng([seed, split_index, i])`` and Taichi runs on one
+  thread per process (CPU);
+- ``workers`` processes (spawned) simulate trajectories in parallel, a progress bar counts them;
+- each finished trajectory is saved in ``out_dir/.parts/``; a restart skips them, and a split
+  file appears (atomically) only once all its trajectories exist; ``metadata.json`` is written
+  last, so a folder with ``metadata.json`` is complete. A folder made with other settings is
+  never mixed with: generation stops with an error;
+- ``metadata.json`` carries DeepMind's keys (statistics from the train split) plus
+  ``num_particles_max``, ``gravity`` and ``generator`` = {scene, params, seed, version, ...}.
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing
+import shutil
+import sys
+from importlib.metadata import PackageNotFoundError, version as package_version
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from rgns.data.contract import SPLITS, DatasetError, Split, atomic_path, write_metadata, write_split
+from rgns.data.stats import compute_statistics
+
+CONF_DIR = Path(__file__).resolve().parents[3] / "conf"  # the repo's conf/ (editable install)
+GENERATOR_VERSION = 1  # bump when the same config and seed would give other data
+
+
+def compose(overrides: Sequence[str] = (), config_dir: str | Path | None = None):
+    """Compose ``conf/generate.yaml`` with Hydra overrides (no run directory, no logging setup)."""
+    from hydra import compose as hydra_compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(Path(config_dir or CONF_DIR).resolve()), version_base=None):
+        cfg = hydra_compose("generate", overrides=list(overrides))
+    OmegaConf.resolve(cfg)
+    return cfg
+
+
+def scene_config(scene: str | Mapping, config_dir: str | Path | None = None) -> dict:
+    """A scene's config as a plain dict, from its name under ``conf/scene/`` or a mapping."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(scene, str):
+        return OmegaConf.to_container(compose([f"scene={scene}", "out_dir=unused"], config_dir).scene)
+    if isinstance(scene, DictConfig):
+        return OmegaConf.to_container(scene, resolve=True)
+    return json.loads(json.dumps(dict(scene)))  # a deep, plain copy
+
+
+def _version() -> str:
+    try:
+        return f"rgns {package_version('rgns')}, generator {GENERATOR_VERSION}"
+    except PackageNotFoundError:
+        return f"generator {GENERATOR_VERSION}"
+
+
+# ---------------------------------------------------------------- one trajectory, in a worker
+_scenes: dict[str, object] = {}
+
+
+def _simulate(task: tuple) -> tuple[str, int]:
+    """Simulate one trajectory and save it as a part file; runs in a worker process."""
+    cfg, split, index, seed, num_frames, parts, arch = task
+    from hydra.utils import instantiate
+
+    from rgns.physics.runtime import init_taichi
+
+    init_taichi(arch=arch, num_threads=1)
+    key = json.dumps(cfg, sort_keys=True)
+    if key not in _scenes:
+        _scenes[key] = instantiate(cfg)
+    rng = np.random.default_rng([seed, SPLITS.index(split), index])
+    position, particle_type = _scenes[key].trajectory(rng, num_frames)
+    with atomic_path(_part_path(Path(parts), split, index)) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, position=position, particle_type=particle_type)
+    return split, index
+
+
+def _part_path(parts: Path, split: str, index: int) -> Path:
+    return parts / f"{split}-{index:05d}.npz"
+
+
+def _load_part(parts: Path, split: str, index: int) -> tuple[np.ndarray, np.ndarray]:
+    with np.load(_part_path(parts, split, index)) as part:
+        return part["position"], part["particle_type"]
+
+
+# ---------------------------------------------------------------- the dataset
+def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories: int | None = None,
+                     num_frames: int | None = None, seed: int = 0, workers: int = 2, arch: str = "cpu",
+                     progress: bool = True) -> Path:
+    """Generate (or finish generating) a dataset folder; returns its path. See the module docs."""
+    cfg = scene_config(scene)
+    splits = {split: int(cfg["splits"][split]) for split in SPLITS}
+    if num_trajectories is not None:
+        splits["train"] = int(num_trajectories)
+    num_frames = int(num_frames or cfg["num_frames"])
+    if num_frames < 3:
+        raise ValueError(f"num_frames={num_frames}: need at least 3 (an acceleration)")
+    generator = {"scene": cfg["name"], "params": cfg, "seed": int(seed), "version": _version(),
+                 "num_trajectories": splits, "num_frames": num_frames}
+
+    out_dir = Path(out_dir)
+    parts = out_dir / ".parts"
+    metadata_path = out_dir / "metadata.json"
+    if metadata_path.is_file():
+        made_with = json.loads(metadata_path.read_text()).get("generator")
+        if made_with != json.loads(json.dumps(generator)):
+            raise DatasetError(f"{out_dir}: holds a dataset made with other settings ({made_with}); "
+                               "choose another out_dir or delete it")
+        return out_dir
+    plan_path = parts / "plan.json"
+    if plan_path.is_file():
+        if json.loads(plan_path.read_text()) != json.loads(json.dumps(generator)):
+            raise DatasetError(f"{out_dir}: an unfinished generation with other settings is in {parts}; "
+                               "delete it or rerun with its settings")
+    else:
+        with atomic_path(plan_path) as tmp:
+            tmp.write_text(json.dumps(generator, indent=2, sort_keys=True))
+
+    todo = [(split, i) for split in SPLITS for i in range(splits[split])
+            if not (out_dir / f"{split}.h5").is_file() and not _part_path(parts, split, i).is_file()]
+    tasks = [(cfg, split, i, int(seed), num_frames, str(parts), arch) for split, i in todo]
+    if tasks:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tasks), desc=f"{cfg['name']} -> {out_dir}", unit="traj", disable=not progress)
+        if workers <= 1:
+            for task in tasks:
+                _simulate(task)
+                bar.update()
+        else:
+            with multiprocessing.get_context("spawn").Pool(min(workers, len(tasks))) as pool:
+                for _ in pool.imap_unordered(_simulate, tasks):
+                    bar.update()
+        bar.close()
+
+    num_particles_max = 0
+    for split in SPLITS:  # assemble each split once all its parts exist
+        path = out_dir / f"{split}.h5"
+        if not path.is_file():
+            write_split(path, (_load_part(parts, split, i) for i in range(splits[split])))
+        with Split(path) as data:
+            if len(data) != splits[split]:
+                raise DatasetError(f"{path}: {len(data)} trajectories, expected {splits[split]}")
+            num_particles_max = max([num_particles_max] + [shape[1] for shape in data.shapes])
+    with Split(out_dir / "train.h5") as train:
+        statistics = compute_statistics(train)
+    metadata = {
+        "bounds": cfg["bounds"],
+        "sequence_length": num_frames - 1,
+        "default_connectivity_radius": cfg["connectivity_radius"],
+        "dim": cfg["dim"],
+        "dt": cfg["dt"],
+        **statistics,
+        "num_particles_max": num_particles_max,
+        "gravity": cfg["gravity"],
+        "generator": generator,
+    }
+    write_metadata(out_dir, metadata)
+    shutil.rmtree(parts, ignore_errors=True)
+    return out_dir
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if any(arg in ("-h", "--help") for arg in argv):
+        scenes = sorted(p.stem for p in (CONF_DIR / "scene").glob("*.yaml"))
+        print(__doc__)
+        print("scenes:", ", ".join(scenes))
+        return Path()
+    cfg = compose(argv)
+    return generate_dataset(cfg.scene, cfg.out_dir, num_trajectories=cfg.num_trajectories,
+                            num_frames=cfg.num_frames, seed=cfg.seed, workers=cfg.workers, arch=cfg.arch)
+
+
+if __name__ == "__main__":
+    main()

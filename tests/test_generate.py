@@ -1,0 +1,141 @@
+"""Scene generation: reproducible bytes, resumable, metadata as the data contract wants."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import rgns.data.generate as generate
+from rgns.data.contract import KINEMATIC, SPLITS, WATER, DatasetError, open_split, read_metadata, validate_dataset
+from rgns.data.generate import generate_dataset, scene_config
+from rgns.data.stats import compute_statistics
+
+TINY = dict(num_trajectories=2, num_frames=12, seed=3, workers=1, progress=False)
+
+
+def tiny_scene(name="waterdrop"):
+    cfg = scene_config(name)
+    cfg["splits"] = {"train": 2, "valid": 1, "test": 1}
+    return cfg
+
+
+def split_bytes(folder):
+    return {name: (folder / name).read_bytes() for name in ("train.h5", "valid.h5", "test.h5", "metadata.json")}
+
+
+@pytest.fixture(scope="module")
+def waterdrop(tmp_path_factory):
+    return generate_dataset(tiny_scene(), tmp_path_factory.mktemp("data") / "waterdrop", **TINY)
+
+
+def test_dataset_follows_the_contract(waterdrop):
+    metadata = validate_dataset(waterdrop)
+    assert metadata["sequence_length"] == 11 and metadata["dim"] == 2 and metadata["dt"] == 0.0025
+    assert metadata["bounds"] == [[0.1, 0.9], [0.1, 0.9]] and metadata["gravity"] == [0.0, -9.81]
+    assert metadata["generator"]["scene"] == "waterdrop" and metadata["generator"]["seed"] == 3
+    assert metadata["generator"]["params"]["spacing"] == 0.0065 and "version" in metadata["generator"]
+    with open_split(waterdrop, "train") as train:
+        assert len(train) == 2
+        assert metadata["num_particles_max"] >= max(shape[1] for shape in train.shapes)
+        expected = compute_statistics(train)
+        for position, particle_type in train:
+            assert position.shape[0] == 12 and (particle_type == WATER).all()
+    for key, value in expected.items():
+        np.testing.assert_allclose(metadata[key], value)
+    assert not (waterdrop / ".parts").exists()
+
+
+def test_spacing_gives_10_to_25_neighbours(waterdrop):
+    metadata = read_metadata(waterdrop)
+    with open_split(waterdrop, "train") as train:
+        for position, _ in train:
+            pairs = cKDTree(position[0]).query_pairs(metadata["default_connectivity_radius"])
+            assert 10 <= 2 * len(pairs) / position.shape[1] <= 25
+
+
+def test_same_seed_same_bytes_other_seed_other_data(waterdrop, tmp_path):
+    again = generate_dataset(tiny_scene(), tmp_path / "again", **TINY)
+    assert split_bytes(again) == split_bytes(waterdrop)
+    other = generate_dataset(tiny_scene(), tmp_path / "other", **{**TINY, "seed": 4})
+    assert (other / "train.h5").read_bytes() != (waterdrop / "train.h5").read_bytes()
+
+
+def test_interrupted_generation_resumes_without_redoing_work(waterdrop, tmp_path, monkeypatch):
+    simulate, calls = generate._simulate, []
+
+    def interrupted(task):
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        calls.append(task[1:3])
+        return simulate(task)
+
+    monkeypatch.setattr(generate, "_simulate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(tiny_scene(), tmp_path / "resumed", **TINY)
+    assert (tmp_path / "resumed" / "train.h5").exists() is False  # no split before all its parts
+    assert not (tmp_path / "resumed" / "metadata.json").exists()
+    calls.clear()
+    monkeypatch.setattr(generate, "_simulate", lambda task: (calls.append(task[1:3]), simulate(task))[1])
+    resumed = generate_dataset(tiny_scene(), tmp_path / "resumed", **TINY)
+    assert calls == [("test", 0)]  # only the missing trajectory
+    assert split_bytes(resumed) == split_bytes(waterdrop)
+
+
+def test_other_settings_never_mix_into_a_folder(waterdrop):
+    with pytest.raises(DatasetError, match="other settings"):
+        generate_dataset(tiny_scene(), waterdrop, **{**TINY, "seed": 5})
+    assert generate_dataset(tiny_scene(), waterdrop, **TINY) == waterdrop  # complete: nothing to do
+
+
+def test_ramps_are_static_kinematic_particles(tmp_path):
+    cfg = tiny_scene("waterramps")
+    folder = generate_dataset(cfg, tmp_path / "ramps", **TINY)
+    with open_split(folder, "train") as train:
+        for position, particle_type in train:
+            static = particle_type == KINEMATIC
+            assert static.any() and (particle_type[~static] == WATER).all()
+            assert (position[:, static] == position[:1, static]).all()
+            assert position.min() >= np.float32(0.1) and position.max() <= np.float32(0.9)
+
+
+@pytest.mark.parametrize("name", ["sand", "dambreak"])
+def test_other_scenes_generate(name, tmp_path):
+    folder = generate_dataset(tiny_scene(name), tmp_path / name, **{**TINY, "num_frames": 5})
+    metadata = validate_dataset(folder)
+    assert metadata["generator"]["scene"] == name and metadata["sequence_length"] == 4
+
+
+def test_cli_composes_overrides_and_leaves_cwd_clean(tmp_path):
+    out = tmp_path / "cli"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    subprocess.run([sys.executable, "-m", "rgns.data.generate", "scene=waterdrop", f"out_dir={out}",
+                    "num_trajectories=1", "num_frames=4", "seed=7", "workers=1",
+                    "scene.splits.valid=1", "scene.splits.test=1"], cwd=tmp_path, env=env, check=True,
+                   capture_output=True)
+    metadata = json.loads((out / "metadata.json").read_text())
+    assert metadata["sequence_length"] == 3 and metadata["generator"]["seed"] == 7
+    assert metadata["generator"]["num_trajectories"] == {"train": 1, "valid": 1, "test": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cli"]  # no outputs/ folder
+
+
+@pytest.mark.slow
+def test_two_workers_give_the_same_bytes_as_one(waterdrop, tmp_path):
+    parallel = generate_dataset(tiny_scene(), tmp_path / "parallel", **{**TINY, "workers": 2})
+    assert split_bytes(parallel) == split_bytes(waterdrop)
+
+
+@pytest.mark.slow
+def test_waterdrop_preset_statistics_are_deepminds(tmp_path):
+    """Per-frame velocity and acceleration std within a factor 2 of DeepMind's WaterDrop."""
+    cfg = scene_config("waterdrop_full")
+    cfg["splits"] = {"train": 6, "valid": 1, "test": 1}
+    folder = generate_dataset(cfg, tmp_path / "full", seed=0, workers=2, progress=False)
+    metadata = read_metadata(folder)
+    deepmind = {"vel_std": [1.37e-3, 1.31e-3], "acc_std": [6.74e-5, 8.70e-5]}
+    for key, reference in deepmind.items():
+        ratio = np.asarray(metadata[key]) / reference
+        assert ((ratio > 0.5) & (ratio < 2.0)).all(), (key, metadata[key])
+    assert metadata["sequence_length"] == 1000 and metadata["num_particles_max"] <= 1100
