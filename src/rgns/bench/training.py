@@ -1,0 +1,137 @@
+"""Data and training-loop throughput: ``python -m rgns.bench training [--json PATH]``.
+
+One thread, one run, one synthetic 1,000-particle 2D dataset (uniform random particles, about
+20 neighbours each, moving by small random walks) written through the data contract. Measures:
+
+1. windows per second delivered by the DataModule's training loader (radius graph, noise,
+   batching; ``num_workers=0``, so it is all on the measuring thread);
+2. the bare model training step (loss, backward, Adam step) on batches held in memory;
+3. the full Lightning Trainer (data loader with its worker, logging, checkpoint callback) on the
+   same dataset and model: steps per second, timed from the first to the last measured step.
+
+The targets are ratios from this one run: data loading well above the step rate, and the
+Trainer at least 0.8 of the bare step rate.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+
+from rgns.bench.models import scene
+from rgns.data.contract import SPLITS, write_metadata, write_split
+from rgns.data.datamodule import ParticleDataModule
+from rgns.training.module import SimulatorModule
+
+
+def synthetic_dataset(root: Path, particles: int, frames: int, trajectories: int) -> None:
+    metadata, state = scene(particles, neighbours=20.0)
+    rng = np.random.default_rng(0)
+    start = state.position.numpy()
+
+    def trajectory():
+        steps = rng.normal(scale=1e-3, size=(frames, particles, 2))
+        return np.clip(start + np.cumsum(steps, axis=0), 0.1, 0.9).astype(np.float32), np.full(particles, 5)
+
+    for split in SPLITS:
+        write_split(root / f"{split}.h5", [trajectory() for _ in range(trajectories)])
+    stats = dict(vel_mean=[0.0, 0.0], vel_std=[1e-3, 1e-3], acc_mean=[0.0, 0.0], acc_std=[1.4e-3, 1.4e-3])
+    write_metadata(root, dict(metadata, **stats, sequence_length=frames - 1))
+
+
+class StepTimer(L.Callback):
+    """Wall time from the start of step ``warmup`` to the end of the last step."""
+
+    def __init__(self, warmup: int):
+        self.warmup, self.start, self.end, self.steps = warmup, None, None, 0
+
+    def on_train_batch_start(self, trainer, module, batch, batch_idx):
+        if trainer.global_step == self.warmup:
+            self.start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        if self.start is not None:
+            self.steps += 1
+            self.end = time.perf_counter()
+
+
+def main(argv: list[str]) -> None:
+    parser = argparse.ArgumentParser(prog="python -m rgns.bench training", description=__doc__.splitlines()[0])
+    parser.add_argument("--particles", type=int, default=1000)
+    parser.add_argument("--latent", type=int, default=64)
+    parser.add_argument("--layers", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=30, help="measured steps (after 5 warm-up steps)")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    warmup = 5
+
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "data"
+        synthetic_dataset(root, args.particles, frames=40, trajectories=2)
+        model_cfg = {"_target_": "rgns.models.RGNS", "latent": args.latent, "layers": args.layers}
+        loss_cfg = {"_target_": "rgns.training.losses.LossDesign", "name": "DL4"}
+        optimizer = {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-4}
+
+        # 1. data: windows per second
+        datamodule = ParticleDataModule(str(root), num_workers=0)
+        datamodule.setup("fit")
+        loader = iter(datamodule.train_dataloader())
+        next(loader)
+        start = time.perf_counter()
+        batches = [next(loader) for _ in range(args.steps)]
+        windows_per_s = args.steps * datamodule.batch_size / (time.perf_counter() - start)
+
+        # 2. the bare step, on batches in memory
+        L.seed_everything(0)
+        module = SimulatorModule(model_cfg, datamodule.metadata, loss_cfg, optimizer)
+        adam = torch.optim.Adam(module.parameters(), lr=1e-4)
+
+        def bare_step(batch):
+            adam.zero_grad(set_to_none=True)
+            module._losses(batch)["loss"].backward()
+            adam.step()
+
+        for batch in batches[:warmup]:
+            bare_step(batch)
+        start = time.perf_counter()
+        for batch in batches:
+            bare_step(batch)
+        bare_steps_per_s = len(batches) / (time.perf_counter() - start)
+
+        # 3. the full Trainer: its loader (one worker), logging, last-checkpoint callback
+        L.seed_everything(0)
+        module = SimulatorModule(model_cfg, datamodule.metadata, loss_cfg, optimizer)
+        timer = StepTimer(warmup)
+        trainer = L.Trainer(
+            accelerator="cpu", max_steps=warmup + args.steps, logger=L.pytorch.loggers.TensorBoardLogger(tmp),
+            callbacks=[timer, L.pytorch.callbacks.ModelCheckpoint(dirpath=Path(tmp) / "ckpt", save_last=True)],
+            limit_val_batches=0, log_every_n_steps=20, enable_progress_bar=False, enable_model_summary=False,
+        )
+        trainer.fit(module, datamodule=ParticleDataModule(str(root), num_workers=1))
+        trainer_steps_per_s = timer.steps / (timer.end - timer.start)
+
+    result = {
+        "particles": args.particles,
+        "model": f"R-GNS {args.latent}x{args.layers}",
+        "windows_per_s": windows_per_s,
+        "bare_steps_per_s": bare_steps_per_s,
+        "trainer_steps_per_s": trainer_steps_per_s,
+        "data_over_training": windows_per_s / (bare_steps_per_s * datamodule.batch_size),
+        "trainer_over_bare": trainer_steps_per_s / bare_steps_per_s,
+    }
+    print(f"{'measure':<46}{'value':>10}")
+    print(f"{'windows/s from the DataModule (1 thread)':<46}{windows_per_s:>10.1f}")
+    print(f"{'bare training steps/s (batch 2)':<46}{bare_steps_per_s:>10.2f}")
+    print(f"{'Trainer steps/s (batch 2)':<46}{trainer_steps_per_s:>10.2f}")
+    print(f"{'data / training (windows per window trained)':<46}{result['data_over_training']:>10.2f}")
+    print(f"{'Trainer / bare (target >= 0.8)':<46}{result['trainer_over_bare']:>10.2f}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
