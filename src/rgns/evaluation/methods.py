@@ -1,0 +1,112 @@
+"""The methods an evaluation compares: trained checkpoints (found one by one or under a
+folder, e.g. a Hydra multirun) and training-free baselines, each with a label like the paper's
+("R-GNS 128x10", "R-GNS† 128x10", "GNS 128x10", "Sep-GNS 128x10")."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+from hydra.utils import instantiate
+
+from rgns.models import Simulator, count_parameters
+from rgns.training.module import load_simulator
+
+# display names of the simulators, by class name (labels only: models are built by _target_)
+DISPLAY_NAMES = {"GNS": "GNS", "RGNS": "R-GNS", "SepGNS": "Sep-GNS", "ConstantVelocity": "Const. velocity"}
+
+
+@dataclass
+class Method:
+    label: str
+    model: Simulator
+    data_root: str | None
+    source: str  # checkpoint path, or "baseline"
+    info: dict = field(default_factory=dict)
+
+    @property
+    def parameters(self) -> int:
+        return count_parameters(self.model)
+
+    @property
+    def trained(self) -> bool:
+        return self.source != "baseline"
+
+
+def find_checkpoints(ckpt_path: str | None = None, ckpt_paths=(), checkpoints_dir: str | None = None,
+                     checkpoint: str = "last") -> list[Path]:
+    """Checkpoint files: ``ckpt_path``, ``ckpt_paths`` and, under ``checkpoints_dir``, every
+    ``checkpoints/last.ckpt`` (``checkpoint=last``) or newest ``checkpoints/best*.ckpt``
+    (``checkpoint=best``), sorted by path."""
+    paths = [Path(p) for p in ([ckpt_path] if ckpt_path else []) + list(ckpt_paths or [])]
+    if checkpoints_dir:
+        pattern = "last.ckpt" if checkpoint == "last" else "best*.ckpt"
+        folders = sorted({p.parent for p in Path(checkpoints_dir).rglob("checkpoints/*.ckpt")})
+        for folder in folders:
+            found = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime)
+            paths.extend(found[-1:])
+        if not folders:
+            raise FileNotFoundError(f"{checkpoints_dir}: no checkpoints/*.ckpt under it")
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise FileNotFoundError(f"checkpoint(s) not found: {', '.join(missing)}")
+    if not paths:
+        raise ValueError("no checkpoint given: set ckpt_path=..., ckpt_paths=[...] or checkpoints_dir=...")
+    return list(dict.fromkeys(p.resolve() for p in paths))
+
+
+def describe(model_config: dict) -> str:
+    """``R-GNS 128x10``, ``R-GNS† 128x10`` (forward-only training), ablations appended."""
+    name = DISPLAY_NAMES.get(model_config["_target_"].rsplit(".", 1)[-1], model_config["_target_"].rsplit(".", 1)[-1])
+    if model_config.get("train_inverse") is False:
+        name += "†"
+    label = f"{name} {model_config.get('latent', '?')}x{model_config.get('layers', '?')}"
+    if model_config.get("encoder", "ilp") != "ilp":
+        label += f" {model_config['encoder'].upper()} enc."
+    if model_config.get("edges", "fixed") != "fixed":
+        label += f" {model_config['edges']} edges"
+    return label
+
+
+def _run_overrides(checkpoint: Path) -> list[str]:
+    """The Hydra overrides of the training run that wrote ``checkpoint`` (``[]`` if unknown)."""
+    overrides = checkpoint.parent.parent / ".hydra" / "overrides.yaml"
+    return list(yaml.safe_load(overrides.read_text()) or []) if overrides.is_file() else []
+
+
+def _disambiguate(methods: list[Method]) -> None:
+    """Labels shared by several checkpoints get what differs between their runs: the Hydra
+    overrides of a sweep (``loss=dl1``), else the run folder's name."""
+    by_label: dict[str, list[Method]] = {}
+    for method in methods:
+        by_label.setdefault(method.label, []).append(method)
+    for group in (g for g in by_label.values() if len(g) > 1):
+        overrides = [set(m.info["overrides"]) for m in group]
+        common = set.intersection(*overrides)
+        for method, own in zip(group, overrides):
+            extra = ",".join(o for o in method.info["overrides"] if o not in common and not o.startswith("hydra"))
+            method.label += f" ({extra or Path(method.source).parent.parent.name})"
+    labels = [m.label for m in methods]
+    for i, method in enumerate(methods):  # still equal (same overrides): number them
+        if labels.count(method.label) > 1:
+            method.label += f" #{labels[:i].count(labels[i]) + 1}"
+
+
+def load_checkpoints(paths: list[Path], device: str = "cpu") -> list[Method]:
+    methods = []
+    for path in paths:
+        model, extras = load_simulator(str(path), map_location=device)
+        config = dict(extras["hparams"]["model"])
+        methods.append(Method(describe(config), model, extras["data_root"], str(path), dict(
+            model=config, global_step=extras["global_step"], overrides=_run_overrides(path))))
+    _disambiguate(methods)
+    return methods
+
+
+def build_baselines(configs: dict | None, metadata: dict, history: int, device: str = "cpu") -> list[Method]:
+    """``{name: {_target_: ..., ...}}`` -> training-free methods for one dataset, labelled by class."""
+    methods = []
+    for config in (configs or {}).values():
+        model = instantiate(config, metadata=metadata, history=history).to(device).eval()
+        methods.append(Method(DISPLAY_NAMES.get(type(model).__name__, type(model).__name__), model, None, "baseline"))
+    return methods

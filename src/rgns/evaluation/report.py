@@ -1,0 +1,145 @@
+"""``report.md``: the paper's tables (rollout MSE per dataset and method, efficiency, inverse
+comparison) plus consistency against K, built from exactly what ``results.json`` holds.
+Each number is written with :func:`number` (4 significant digits in the unit its row or column
+names), so a reader or a test can check it against the JSON."""
+from __future__ import annotations
+
+GAP = "—"  # not measured / not applicable / not finite
+
+
+def number(value, scale: float = 1.0, digits: int = 4) -> str:
+    return GAP if value is None else f"{value * scale:.{digits}g}"
+
+
+def steps_cell(steps: int | None, beyond: bool) -> str:
+    """``≥ 100`` when stable over every step tried, ``40`` when it failed after 40."""
+    return GAP if steps is None else (f"≥ {steps}" if beyond else f"{steps}")
+
+
+def table(header: list[str], rows: list[list[str]], best_lowest: set[int] = frozenset()) -> str:
+    """A markdown table; in the rows listed in ``best_lowest``, the lowest number is bold."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for i, row in enumerate(rows):
+        if i in best_lowest:
+            values = [float(c) if c != GAP else float("inf") for c in row[1:]]
+            if len(values) > 1 and min(values) < float("inf"):
+                j = values.index(min(values)) + 1
+                row = row[:j] + [f"**{row[j]}**"] + row[j + 1 :]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def _labels(results: dict, section: str) -> list[str]:
+    labels = {}
+    for data in results["datasets"].values():
+        labels.update(dict.fromkeys(data.get(section, {}).get("methods", {})))
+    return list(labels)
+
+
+def forward_tables(results: dict) -> list[str]:
+    labels = _labels(results, "forward")
+    datasets = {name: d for name, d in results["datasets"].items() if "forward" in d}
+    if not datasets:
+        return []
+    measured = "; ".join(
+        f"{name}: {d['forward']['settings']['trajectories']} {d['split']} trajectories, rollouts of "
+        f"{d['forward']['settings']['steps']} steps from frame {d['forward']['settings']['start']} "
+        f"(capped by each trajectory's length)" for name, d in datasets.items())
+    out = ["## Rollout MSE (1e-3) in the forward process", "",
+           f"Measured on {measured}. Rollout MSE as GNS defines it: mean over steps x particles x dims of the "
+           "squared position error (kinematic particles included, at zero error).", "",
+           table(["Dataset / Methods", *labels],
+                 [[name, *(number(d["forward"]["methods"].get(m, {}).get("rollout_mse"), 1e3) for m in labels)]
+                  for name, d in datasets.items()], best_lowest=set(range(len(datasets)))), "",
+           "Stable steps of the forward rollouts (the fewest over the trajectories; ≥ n: no divergence in the "
+           "n steps rolled out):", "",
+           table(["Dataset / Methods", *labels],
+                 [[name, *(steps_cell(d["forward"]["methods"][m]["stable_steps"], not d["forward"]["methods"][m]["diverged"])
+                           if m in d["forward"]["methods"] else GAP for m in labels)] for name, d in datasets.items()])]
+    for name, d in datasets.items():
+        forward = d["forward"]
+        steps = sorted({s for row in forward["methods"].values() for s in row["ot"]}, key=int)
+        header = ["Method", "Rollout MSE (1e-3)", *(f"OT (1e-3), step {s}" for s in steps),
+                  *(f"MMD (1e-2), step {s}" for s in steps), "Stable steps"]
+        rows = [[label, number(row["rollout_mse"], 1e3), *(number(row["ot"].get(s), 1e3) for s in steps),
+                 *(number(row["mmd"].get(s), 1e2) for s in steps), steps_cell(row["stable_steps"], not row["diverged"])]
+                for label, row in forward["methods"].items()]
+        s = forward["settings"]
+        out += ["", f"### Forward rollouts on {name}", "",
+                f"Measured on {s['trajectories']} {d['split']} trajectories ({s['particles']} particles), "
+                f"{s['steps']} steps from frame {s['start']}. OT: squared 2-Wasserstein distance; MMD: squared MMD with "
+                f"Gaussian kernels at {s['mmd_scale']:g} x (0.5, 1, 2); both on at most {s['distribution_particles']} "
+                "moving particles, averaged over the trajectories.", "", table(header, rows)]
+    return out
+
+
+def efficiency_tables(results: dict) -> list[str]:
+    out = []
+    for name, d in results["datasets"].items():
+        if "efficiency" not in d:
+            continue
+        cost, s = d["efficiency"]["methods"], d["efficiency"]["settings"]
+        labels = list(cost)
+        rows = [
+            ["Parameter Count (M)", *(number(cost[m]["parameters"], 1e-6) for m in labels)],
+            ["Forward Inference Time (ms/step)", *(number(cost[m]["forward_ms_per_step"]) for m in labels)],
+            ["Inverse Inference Time (ms/step)", *(number(cost[m].get("inverse_ms_per_step")) for m in labels)],
+            ["Inference Memory (MB)", *(number(cost[m]["forward_memory_mb"]) for m in labels)],
+            ["Inverse Inference Memory (MB)", *(number(cost[m].get("inverse_memory_mb")) for m in labels)],
+        ]
+        out += ["", f"## Efficiency comparison on {name}", "",
+                f"Measured on the first {d['split']} trajectory at frame {s['frame']}: {s['particles']} particles, "
+                f"{s['edges']} edges; one step with its radius graph, median of {s['repeats']} warm repeats on "
+                f"{s['device']} with {s['threads']} thread(s). Memory: {s['memory_method']}.", "",
+                table(["Metrics / Methods", *labels], rows, best_lowest={1, 2, 3, 4})]
+    return out
+
+
+def inverse_tables(results: dict) -> list[str]:
+    out = []
+    for name, d in results["datasets"].items():
+        if "inverse" not in d:
+            continue
+        inverse, s, summary = d["inverse"]["methods"], d["inverse"]["settings"], d["summary"]
+        labels, K = list(inverse), s["table_horizon"]
+        rows = [
+            ["Consistency MSE (1e-3)", *(number(summary[m]["consistency_mse"], 1e3) for m in labels)],
+            ["Inverse MSE (1e-3)", *(number(summary[m]["inverse_mse"], 1e3) for m in labels)],
+            [f"Inference Time, {K} inverse steps (s)", *(number(summary[m].get("inverse_seconds")) for m in labels)],
+            ["Parameter Counts (M)", *(number(summary[m].get("parameters"), 1e-6) for m in labels)],
+            ["Max Stable Steps", *(steps_cell(summary[m]["max_stable_steps"], summary[m]["stable_beyond_tested"])
+                                   for m in labels)],
+        ]
+        horizons = [str(k) for k in s["horizons"]]
+        by_k = [[k, *(number(inverse[m]["horizons"][k]["consistency_mse"], 1e3) for m in labels),
+                 *(number(inverse[m]["horizons"][k]["inverse_mse"], 1e3) for m in labels)] for k in horizons]
+        out += ["", f"## Inverse inference comparison on {name} (inverse step = {K})", "",
+                f"Measured on {s['trajectories']} {d['split']} trajectories: from the true state at frame "
+                f"{s['start']} + K, K inverse steps back (inverse MSE against the truth at frame {s['start']}), then K "
+                f"forward steps from the inferred state (consistency MSE against the truth at frame {s['start']} + K). "
+                f"Max stable steps: the largest K tried ({', '.join(horizons)}) up to which the consistency MSE stays "
+                f"under {s['threshold']:g} without divergence (≥: every K tried). Inference time: K x the inverse "
+                f"ms/step of the efficiency table. For K ≤ k = {s['history']}, frame {s['start']} is in the given "
+                "state's velocity history, so its inverse MSE is exactly 0. Forward-only methods are not listed.", "",
+                table(["Methods", *labels], rows, best_lowest={0, 1, 2}), "",
+                f"### Consistency and inverse MSE (1e-3) against the inverse steps K on {name}", "",
+                table(["K", *(f"Consistency {m}" for m in labels), *(f"Inverse {m}" for m in labels)], by_k)]
+    return out
+
+
+def render(results: dict, charts: list[str]) -> str:
+    methods = results["methods"]
+    sources = [f"- {label}: `{info['source']}`" + (f" (step {info['global_step']})" if info.get("global_step") else "")
+               for label, info in methods.items()]
+    environment = results["environment"]
+    lines = ["# rgns evaluation", "",
+             f"Reproduce with: `{results['command']}`", "",
+             f"Run {results['date']} on {environment['device']} ({environment['threads']} thread(s)), "
+             f"torch {environment['torch']}. Methods:", "", *sources, "",
+             *forward_tables(results), *efficiency_tables(results), *inverse_tables(results), "", "## Charts", ""]
+    lines += [f"![{_title(c)}]({c})" for c in charts]
+    return "\n".join(lines) + "\n"
+
+
+def _title(name: str) -> str:
+    return name.rsplit(".", 1)[0].replace("_", " ")

@@ -1,0 +1,100 @@
+"""One evaluation: checkpoints and baselines in, ``results.json``, ``report.md``, charts and
+animations out (the body of ``python evaluate.py``)."""
+from __future__ import annotations
+
+import json
+import logging
+import platform
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from rgns.evaluation import plots, report
+from rgns.evaluation.methods import build_baselines, find_checkpoints, load_checkpoints
+from rgns.evaluation.tasks import Dataset
+
+log = logging.getLogger(__name__)
+
+
+def summarise(sections: dict) -> dict:
+    """The headline numbers of each method on one dataset, from the tasks' sections: what the
+    report's tables and the accuracy-against-speed chart show."""
+    forward, inverse, efficiency = (sections.get(k, {}).get("methods", {}) for k in ("forward", "inverse", "efficiency"))
+    table_horizon = sections.get("inverse", {}).get("settings", {}).get("table_horizon")
+    summary = {}
+    for label in dict.fromkeys([*forward, *inverse, *efficiency]):
+        row = {}
+        if label in forward:
+            row.update(rollout_mse=forward[label]["rollout_mse"], stable_steps=forward[label]["stable_steps"],
+                       diverged=forward[label]["diverged"])
+        if label in efficiency:
+            cost = efficiency[label]
+            row.update(parameters=cost["parameters"], forward_ms_per_step=cost["forward_ms_per_step"],
+                       inverse_ms_per_step=cost.get("inverse_ms_per_step"), memory_mb=cost["forward_memory_mb"])
+        if label in inverse:
+            at = inverse[label]["horizons"][str(table_horizon)]
+            row.update(consistency_mse=at["consistency_mse"], inverse_mse=at["inverse_mse"],
+                       max_stable_steps=inverse[label]["max_stable_steps"],
+                       stable_beyond_tested=inverse[label]["stable_beyond_tested"])
+            if row.get("inverse_ms_per_step") is not None:  # as the paper: K inverse steps
+                row["inverse_seconds"] = table_horizon * row["inverse_ms_per_step"] / 1e3
+        summary[label] = row
+    return summary
+
+
+def command_line() -> str:
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        overrides = list(HydraConfig.get().overrides.task)
+    except ValueError:  # composed without @hydra.main (tests, notebooks)
+        overrides = sys.argv[1:]
+    return " ".join(["python evaluate.py", *overrides])
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    torch.set_num_threads(cfg.threads)
+    out = Path(cfg.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoints = find_checkpoints(cfg.ckpt_path, cfg.ckpt_paths, cfg.checkpoints_dir, cfg.checkpoint)
+    methods = load_checkpoints(checkpoints, cfg.device)
+    tasks = [instantiate(task) for task in cfg.task.values()]
+
+    by_root: dict[str, list] = {}
+    for method in methods:
+        root = cfg.data_root or method.data_root
+        if root is None:
+            raise ValueError(f"{method.source}: the checkpoint does not name its dataset; set data_root=...")
+        by_root.setdefault(str(Path(root).resolve()), []).append(method)
+
+    results = dict(command=command_line(), date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                   config=OmegaConf.to_container(cfg, resolve=True),
+                   environment=dict(torch=torch.__version__, python=platform.python_version(), device=cfg.device,
+                                    threads=torch.get_num_threads()),
+                   methods={m.label: dict(source=m.source, **m.info) for m in methods}, datasets={})
+    examples = {}
+    for root, trained in by_root.items():
+        history = trained[0].model.history
+        dataset = Dataset.load(root, cfg.split, cfg.trajectories, history, cfg.start, cfg.device)
+        compared = trained + build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)
+        log.info("%s: %d trajectories, %s", dataset.name, len(dataset.trajectories), ", ".join(m.label for m in compared))
+        sections, examples[dataset.name] = dict(root=root, split=cfg.split), {}
+        for task in tasks:
+            sections[task.name], examples[dataset.name][task.name] = task(compared, dataset)
+        sections["bounds"] = dataset.metadata["bounds"]
+        results["datasets"][dataset.name] = sections
+        for label in (m.label for m in compared if not m.trained):
+            results["methods"].setdefault(label, dict(source="baseline"))
+
+    results = json.loads(json.dumps(results))  # what the file holds: str keys, no tensors
+    for sections in results["datasets"].values():
+        sections["summary"] = summarise(sections)
+    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    charts = plots.make_all(results, examples, out, cfg.animation)
+    (out / "report.md").write_text(report.render(results, charts))
+    log.info("wrote %s", out / "report.md")
+    return results

@@ -1,0 +1,379 @@
+"""The evaluation tasks. Each is built from ``conf/task/*.yaml`` by ``_target_`` and called on
+one dataset with the methods to compare: ``task(methods, dataset) -> (results, examples)``.
+``results`` goes to ``results.json`` (plain numbers, ``None`` where a value is not finite);
+``examples`` are the frames of the first trajectory that the animations show.
+
+- :class:`ForwardRollout`: rollout MSE as GNS defines it, MSE per step, OT and MMD at chosen
+  steps, and how many steps each rollout stays stable;
+- :class:`InverseConsistency`: for each horizon K, K inverse steps back from the true state at
+  ``t0 + K`` (inverse MSE against the truth at ``t0``), then K forward steps (consistency MSE
+  against the truth at ``t0 + K``); max stable steps;
+- :class:`Efficiency`: ms per forward and inverse step (warm, median), peak memory of a step,
+  parameters.
+
+A new task is a class with a ``name`` and that call, a ``conf/task/<name>.yaml`` (``task=all``
+lists the files it composes), and its tables in :mod:`rgns.evaluation.report`.
+"""
+from __future__ import annotations
+
+import ctypes
+import gc
+import math
+import multiprocessing
+import os
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from rgns.data.contract import KINEMATIC, open_split, read_metadata
+from rgns.evaluation.metrics import divergence_step, mmd, mse_per_step, optimal_transport
+from rgns.models import State
+from rgns.training.rollouts import forward_rollout, inverse_then_forward
+
+
+@dataclass
+class Dataset:
+    """The test trajectories one evaluation runs on."""
+
+    name: str
+    root: str
+    metadata: dict
+    trajectories: list[tuple[Tensor, Tensor]]  # (position [T, N, D], particle_type [N])
+    start: int  # t0: the first frame a rollout starts from (needs k frames of history before it)
+
+    @classmethod
+    def load(cls, root: str, split: str, trajectories: int | None, history: int, start: int | None,
+             device: str = "cpu") -> "Dataset":
+        if start is not None and start < history:
+            raise ValueError(f"start={start}: a rollout needs the {history} frames of history before it (start >= {history})")
+        with open_split(root, split) as data:
+            count = len(data) if trajectories is None else min(trajectories, len(data))
+            loaded = [(torch.from_numpy(p).to(device), torch.from_numpy(t).to(device))
+                      for p, t in (data[i] for i in range(count))]
+        return cls(Path(root).name, str(root), read_metadata(root), loaded, history if start is None else start)
+
+    @property
+    def bounds(self) -> Tensor:
+        return torch.as_tensor(self.metadata["bounds"], dtype=torch.float32)
+
+
+def finite(value) -> float | None:
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def mean_or_none(values) -> float | None:
+    values = list(values)
+    return None if not values or any(v is None for v in values) else float(np.mean(values))
+
+
+def reference_speed(position: Tensor, particle_type: Tensor) -> float:
+    """RMS per-frame speed of the moving particles of a true trajectory ``[T, N, D]``."""
+    velocity = torch.diff(position[:, particle_type != KINEMATIC], dim=0)
+    return float(velocity.pow(2).sum(-1).mean().sqrt())
+
+
+def progress(total: int, desc: str) -> tqdm:
+    return tqdm(total=total, desc=desc, unit="rollout", leave=False, dynamic_ncols=True)
+
+
+@dataclass
+class Divergence:
+    """When a rollout counts as broken (see :func:`rgns.evaluation.metrics.divergence_step`):
+    a particle ``margin_radii`` connectivity radii outside the box, or a mean kinetic energy
+    ``energy_factor`` times that of the true trajectory, or a NaN."""
+
+    margin_radii: float = 2.0
+    energy_factor: float = 100.0
+
+    def step(self, positions: Tensor, dataset: Dataset, speed: float) -> int | None:
+        radius = float(dataset.metadata["default_connectivity_radius"])
+        return divergence_step(positions.cpu(), dataset.bounds, self.margin_radii * radius, speed, self.energy_factor)
+
+
+class ForwardRollout:
+    """Forward rollouts from frame t0 on each test trajectory.
+
+    Args:
+        steps: rollout length (the paper: 300); ``None`` rolls out to the end of each trajectory;
+            always capped by the trajectory's length.
+        distribution_steps: rollout steps (1-based) at which OT and MMD are measured; steps past a
+            rollout's end are skipped, the last step is always added.
+        distribution_particles: OT and MMD on at most this many moving particles (the same random
+            subset in prediction and truth).
+        divergence: :class:`Divergence` settings.
+    """
+
+    name = "forward"
+
+    def __init__(self, steps: int | None = 300, distribution_steps=(1, 10, 100, 300), distribution_particles: int = 1000,
+                 divergence: dict | None = None, seed: int = 0):
+        self.steps, self.distribution_steps = steps, sorted(set(distribution_steps))
+        self.distribution_particles, self.seed = distribution_particles, seed
+        self.divergence = Divergence(**(divergence or {}))
+
+    def lengths(self, dataset: Dataset) -> list[int]:
+        cap = [len(p) - 1 - dataset.start for p, _ in dataset.trajectories]
+        return [c if self.steps is None else min(self.steps, c) for c in cap]
+
+    def __call__(self, methods, dataset: Dataset) -> tuple[dict, dict]:
+        lengths = self.lengths(dataset)
+        if min(lengths) < 1:
+            raise ValueError(f"{dataset.name}: a test trajectory is too short to roll out from frame {dataset.start}")
+        scale = float(dataset.metadata["default_connectivity_radius"])
+        results, examples = {}, {"start": dataset.start, "truth": None, "predicted": {},
+                              "particle_type": dataset.trajectories[0][1].cpu()}
+        bar = progress(len(methods) * len(lengths), f"forward rollouts ({dataset.name})")
+        for method in methods:
+            per_trajectory = []
+            for i, ((position, particle_type), steps) in enumerate(zip(dataset.trajectories, lengths)):
+                start = dataset.start
+                predicted = forward_rollout(method.model, position, particle_type, start, steps)
+                truth = position[start + 1 : start + 1 + steps]
+                per_trajectory.append(self._metrics(predicted, truth, particle_type, dataset, position, scale))
+                if i == 0:
+                    examples["truth"], examples["predicted"][method.label] = truth.cpu(), predicted.cpu()
+                bar.update()
+            results[method.label] = self._aggregate(per_trajectory)
+        bar.close()
+        settings = dict(start=dataset.start, steps=max(lengths), steps_per_trajectory=lengths,
+                        trajectories=len(lengths), particles=int(dataset.trajectories[0][0].shape[1]),
+                        distribution_particles=self.distribution_particles, mmd_scale=scale,
+                        divergence=vars(self.divergence))
+        return dict(settings=settings, methods=results), examples
+
+    def _metrics(self, predicted, truth, particle_type, dataset, position, scale) -> dict:
+        per_step = mse_per_step(predicted, truth)
+        moving = (particle_type != KINEMATIC).nonzero().squeeze(1)
+        generator = torch.Generator().manual_seed(self.seed)
+        if len(moving) > self.distribution_particles:
+            moving = moving[torch.randperm(len(moving), generator=generator)[: self.distribution_particles].to(moving.device)]
+        steps = [s for s in self.distribution_steps if s <= len(predicted)]
+        steps = steps if steps and steps[-1] == len(predicted) else steps + [len(predicted)]
+        ot_values, mmd_values = {}, {}
+        for s in steps:
+            x, y = predicted[s - 1, moving], truth[s - 1, moving]
+            ok = bool(torch.isfinite(x).all())
+            ot_values[s] = optimal_transport(x, y) if ok else None
+            mmd_values[s] = mmd(x, y, scale) if ok else None
+        diverged = self.divergence.step(predicted, dataset, reference_speed(position, particle_type))
+        return dict(rollout_mse=finite(per_step.mean()), mse_per_step=[finite(v) for v in per_step],
+                    ot=ot_values, mmd=mmd_values, steps=len(predicted),
+                    stable_steps=len(predicted) if diverged is None else diverged, diverged=diverged is not None)
+
+    @staticmethod
+    def _aggregate(per_trajectory: list[dict]) -> dict:
+        longest = max(r["steps"] for r in per_trajectory)
+        curve = []
+        for s in range(longest):  # mean over the trajectories that reach step s
+            values = [r["mse_per_step"][s] for r in per_trajectory if s < r["steps"]]
+            curve.append(mean_or_none(values))
+        distribution_steps = sorted({s for r in per_trajectory for s in r["ot"]})
+
+        def at(key, s):
+            return mean_or_none(r[key][s] for r in per_trajectory if s in r[key])
+
+        stable = min(r["stable_steps"] for r in per_trajectory)
+        return dict(
+            rollout_mse=mean_or_none(r["rollout_mse"] for r in per_trajectory),
+            rollout_mse_per_trajectory=[r["rollout_mse"] for r in per_trajectory],
+            mse_per_step=curve,
+            ot={s: at("ot", s) for s in distribution_steps},
+            mmd={s: at("mmd", s) for s in distribution_steps},
+            stable_steps=stable,  # the fewest over the trajectories
+            stable_steps_per_trajectory=[r["stable_steps"] for r in per_trajectory],
+            diverged=any(r["diverged"] for r in per_trajectory),
+        )
+
+
+class InverseConsistency:
+    """Inverse inference and inverse-then-forward consistency for each horizon K.
+
+    Args:
+        horizons: the K tried (the paper: 1 to 100); those longer than a trajectory allows
+            (``t0 + K`` past its last frame) are dropped.
+        threshold: a horizon is stable while its consistency MSE stays under this and neither
+            the inferred nor the re-simulated trajectory diverges.
+        table_horizon: the K of the comparison table (the paper: 40); capped by the horizons run.
+        divergence: :class:`Divergence` settings.
+    """
+
+    name = "inverse"
+
+    def __init__(self, horizons=(1, 2, 5, 10, 20, 40, 60, 80, 100), threshold: float = 1e-3,
+                 table_horizon: int = 40, divergence: dict | None = None):
+        self.horizons, self.threshold, self.table_horizon = sorted(set(horizons)), threshold, table_horizon
+        self.divergence = Divergence(**(divergence or {}))
+
+    def __call__(self, methods, dataset: Dataset) -> tuple[dict, dict]:
+        start = dataset.start
+        longest = max(len(p) for p, _ in dataset.trajectories) - 1 - start
+        horizons = [K for K in self.horizons if K <= longest]
+        if not horizons:
+            raise ValueError(f"{dataset.name}: trajectories too short for any inverse horizon from frame {start}")
+        bidirectional = [m for m in methods if m.model.bidirectional]
+        work = sum(K <= len(p) - 1 - start for p, _ in dataset.trajectories for K in horizons) * len(bidirectional)
+        bar = progress(work, f"inverse horizons ({dataset.name})")
+        results, examples = {}, {"start": start, "horizon": horizons[-1], "truth": None, "inferred": {}, "resimulated": {},
+                                "particle_type": dataset.trajectories[0][1].cpu()}
+        for method in bidirectional:
+            per_horizon = {}
+            for K in horizons:
+                rows = []
+                for i, (position, particle_type) in enumerate(dataset.trajectories):
+                    if start + K > len(position) - 1:
+                        continue
+                    inferred, resimulated = inverse_then_forward(method.model, position, particle_type, start, K)
+                    speed = reference_speed(position, particle_type)
+                    broken = (self.divergence.step(inferred.flip(0), dataset, speed) is not None
+                              or self.divergence.step(resimulated, dataset, speed) is not None)
+                    rows.append(dict(inverse_mse=finite((inferred[-1] - position[start]).pow(2).mean()),
+                                     consistency_mse=finite((resimulated[-1] - position[start + K]).pow(2).mean()),
+                                     diverged=broken))
+                    if i == 0 and K == horizons[-1]:
+                        examples["truth"] = position[start : start + K + 1].cpu()  # frames t0 .. t0+K
+                        examples["inferred"][method.label] = inferred.cpu()  # frames t0+K-1 .. t0
+                        examples["resimulated"][method.label] = resimulated.cpu()  # frames t0+1 .. t0+K
+                    bar.update()
+                per_horizon[K] = dict(
+                    inverse_mse=mean_or_none(r["inverse_mse"] for r in rows),
+                    consistency_mse=mean_or_none(r["consistency_mse"] for r in rows),
+                    diverged=any(r["diverged"] for r in rows), trajectories=len(rows))
+            results[method.label] = dict(horizons=per_horizon, **self._stability(per_horizon))
+        bar.close()
+        table_horizon = max([K for K in horizons if K <= self.table_horizon] or horizons[:1])
+        settings = dict(start=start, horizons=horizons, threshold=self.threshold, table_horizon=table_horizon,
+                        history=max((m.model.history for m in bidirectional), default=None),
+                        trajectories=len(dataset.trajectories), divergence=vars(self.divergence))
+        return dict(settings=settings, methods=results), examples
+
+    def _stability(self, per_horizon: dict) -> dict:
+        """Max stable steps: the largest K such that every K' <= K tried stays under the
+        threshold without diverging; ``stable_beyond_tested`` when all of them do."""
+        stable = 0
+        for K, row in sorted(per_horizon.items()):
+            value = row["consistency_mse"]
+            if row["diverged"] or value is None or value >= self.threshold:
+                return dict(max_stable_steps=stable, stable_beyond_tested=False)
+            stable = K
+        return dict(max_stable_steps=stable, stable_beyond_tested=True)
+
+
+def _status_mb(field: str) -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError(f"{field} not in /proc/self/status")
+
+
+def _peak_rss_child(fn, connection) -> None:
+    """In a forked child: rise of the resident set's high-water mark over one call of ``fn``."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 64 * 1024)  # M_MMAP_THRESHOLD: blocks over 64 KiB are mapped, and unmapped when freed
+        libc.malloc_trim(0)  # free heap pages the parent left resident would hide the step's allocations
+        fn()  # fault in the library pages a fork does not copy, which would count as memory of the step
+        rises = []
+        for _ in range(2):  # the smaller of two: garbage collection's timing moves the peak a little
+            gc.collect()
+            libc.malloc_trim(0)
+            base = _status_mb("VmRSS")
+            Path("/proc/self/clear_refs").write_text("5")  # reset VmHWM to the current RSS
+            fn()
+            rises.append(_status_mb("VmHWM") - base)
+        connection.send(min(rises))
+    except Exception as error:  # noqa: BLE001 - reported to the parent, which records None
+        connection.send(repr(error))
+    finally:
+        connection.close()
+
+
+def peak_memory_mb(fn, device: torch.device) -> float | None:
+    """Peak memory one call of ``fn`` needs beyond what is already allocated (weights, data).
+
+    CUDA: ``torch.cuda.max_memory_allocated`` over the call. CPU: the rise of the resident set's
+    high-water mark (``VmHWM``, reset through ``/proc/self/clear_refs``) over a call (the smaller
+    of two, after a warm-up call), in
+    a forked copy of this process with glibc's mmap threshold at 64 KiB and its free heap pages
+    released (``malloc_trim``), so that the peak is of live memory, not of the allocator's cache;
+    the first call faults in the shared-library pages the child does not inherit.
+    ``None`` where neither applies.
+    """
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        base = torch.cuda.memory_allocated(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        fn()
+        torch.cuda.synchronize(device)
+        return (torch.cuda.max_memory_allocated(device) - base) / 2**20
+    if not Path("/proc/self/clear_refs").exists() or "fork" not in multiprocessing.get_all_start_methods():
+        return None
+    receive, send = multiprocessing.Pipe(duplex=False)
+    child = multiprocessing.get_context("fork").Process(target=_peak_rss_child, args=(fn, send))
+    child.start()
+    value = receive.recv()
+    child.join()
+    return value if isinstance(value, float) else None
+
+
+def median_ms(fn, repeats: int, device: torch.device) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        begin = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        times.append(1e3 * (time.perf_counter() - begin))
+    return statistics.median(times)
+
+
+class Efficiency:
+    """Cost of one step on a real test state (the first trajectory at frame t0), radius graph
+    included: forward and inverse ms per step (median of ``repeats`` after a warm-up), peak
+    memory of a step (see :func:`peak_memory_mb`) plus the weights, and parameters.
+
+    Args:
+        repeats: timed repeats per measurement.
+        memory: measure the peak memory (a forked process per measurement on the CPU).
+    """
+
+    name = "efficiency"
+
+    def __init__(self, repeats: int = 5, memory: bool = True):
+        self.repeats, self.memory = repeats, memory
+
+    def __call__(self, methods, dataset: Dataset) -> tuple[dict, dict]:
+        position, particle_type = dataset.trajectories[0]
+        results = {}
+        for method in tqdm(methods, desc=f"efficiency ({dataset.name})", leave=False, dynamic_ncols=True):
+            model = method.model
+            device = next(iter(model.buffers())).device
+            state = State.from_positions(position[dataset.start - model.history : dataset.start + 1], particle_type)
+            weights_mb = sum(t.numel() * t.element_size() for t in [*model.parameters(), *model.buffers()]) / 2**20
+            directions = {"forward": model.step} | ({"inverse": model.inverse_step} if model.bidirectional else {})
+            row = dict(parameters=method.parameters, weights_mb=weights_mb)
+            for direction, step in directions.items():
+                with torch.no_grad():
+                    row[f"{direction}_ms_per_step"] = median_ms(lambda: step(state), self.repeats, device)
+                    peak = peak_memory_mb(lambda: step(state), device) if self.memory else None
+                row[f"{direction}_step_peak_mb"] = peak
+                row[f"{direction}_memory_mb"] = None if peak is None else weights_mb + peak
+            results[method.label] = row
+        edges = int(methods[0].model.graph(position[dataset.start]).size(1)) if methods else 0
+        settings = dict(frame=dataset.start, particles=int(position.shape[1]), edges=edges, repeats=self.repeats,
+                        device=str(position.device), threads=torch.get_num_threads(),
+                        memory_method=("parameters and buffers plus the rise of torch.cuda.max_memory_allocated over one step"
+                                       if position.is_cuda else
+                                       "parameters and buffers plus the rise of VmHWM over one warm step in a "
+                                       "forked process (glibc mmap threshold 64 KiB, free heap trimmed; smaller of two "
+                                       "steps; run-to-run spread about 15 %)"))
+        return dict(settings=settings, methods=results), {}

@@ -1,0 +1,207 @@
+"""Evaluation: the constant-velocity baseline, rollout stability, labels of a sweep, and
+``evaluate.py`` on tiny trained checkpoints (files written, report numbers = results.json)."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import make_metadata, random_trajectory
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from PIL import Image
+
+from rgns.data.contract import SPLITS, WATER, write_metadata, write_split
+from rgns.evaluation.baselines import ConstantVelocity
+from rgns.evaluation.methods import Method, _disambiguate, describe, find_checkpoints
+from rgns.evaluation.run import evaluate
+from rgns.evaluation.tasks import Dataset, ForwardRollout, InverseConsistency
+from rgns.training.rollouts import inverse_then_forward
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="1")
+FRAMES = 30
+FAST = ["trajectories=2", "task.forward.distribution_steps=[1,10]", "task.efficiency.repeats=1",
+        "task.inverse.horizons=[1,5,10,20]", "task.inverse.table_horizon=10", "animation.max_frames=6"]
+
+
+def linear_trajectory(frames: int, speed: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Particles moving at constant velocity to the right, starting inside the box."""
+    rng = np.random.default_rng(1)
+    start = rng.uniform(0.3, 0.5, (20, 2))
+    t = np.arange(frames)[:, None, None]
+    position = start[None] + t * np.array([speed, 0.0])
+    return torch.tensor(position, dtype=torch.float32), torch.full((20,), WATER)
+
+
+def test_constant_velocity_is_exact_on_linear_motion_both_ways():
+    position, particle_type = linear_trajectory(30, 1e-3)
+    model = ConstantVelocity(make_metadata(frames=30))
+    assert sum(p.numel() for p in model.parameters()) == 0
+    inferred, resimulated = inverse_then_forward(model, position, particle_type, start=5, steps=20)
+    torch.testing.assert_close(inferred[-1], position[5], atol=1e-6, rtol=0)
+    torch.testing.assert_close(resimulated, position[6:26], atol=1e-6, rtol=0)
+
+
+def test_forward_task_reports_where_a_rollout_leaves_the_box():
+    """Truth and baseline both fly out of the box at 0.02 per frame: zero error, yet broken."""
+    position, particle_type = linear_trajectory(40, 0.02)
+    metadata = make_metadata(frames=40)
+    dataset = Dataset("linear", "", metadata, [(position, particle_type)], start=5)
+    method = Method("Const. velocity", ConstantVelocity(metadata), None, "baseline")
+    results, examples = ForwardRollout(steps=None, distribution_steps=[1, 10])([method], dataset)
+    row = results["methods"]["Const. velocity"]
+    assert row["rollout_mse"] == pytest.approx(0.0, abs=1e-10)
+    # x starts <= 0.5 + 5 * 0.02 and passes 0.9 + 2 radii (0.16) within 34 steps
+    assert row["diverged"] and 0 < row["stable_steps"] < 34
+    assert examples["predicted"]["Const. velocity"].shape == (34, 20, 2)
+    inverse, _ = InverseConsistency(horizons=[1, 5, 100], threshold=1e-3)([method], dataset)
+    assert inverse["settings"]["horizons"] == [1, 5]  # K = 100 does not fit in 40 frames
+    assert inverse["methods"]["Const. velocity"]["horizons"][5]["inverse_mse"] == pytest.approx(0.0, abs=1e-10)
+
+
+def test_labels_follow_the_paper_and_sweeps_stay_apart():
+    assert describe({"_target_": "rgns.models.RGNS", "latent": 128, "layers": 10}) == "R-GNS 128x10"
+    assert describe({"_target_": "rgns.models.RGNS", "latent": 64, "layers": 5, "train_inverse": False}) == "R-GNS† 64x5"
+    assert describe({"_target_": "rgns.models.RGNS", "latent": 8, "layers": 2, "encoder": "mlp"}) == "R-GNS 8x2 MLP enc."
+    methods = [Method("R-GNS 16x2", None, None, f"/m/{i}/checkpoints/last.ckpt",
+                      dict(overrides=["model.latent=16", f"loss={loss}"])) for i, loss in enumerate(("dl1", "dl4"))]
+    _disambiguate(methods)
+    assert [m.label for m in methods] == ["R-GNS 16x2 (loss=dl1)", "R-GNS 16x2 (loss=dl4)"]
+
+
+@pytest.mark.parametrize("task, names", [("forward", ["forward", "efficiency"]), ("inverse", ["inverse", "efficiency"]),
+                                         ("all", ["forward", "efficiency", "inverse"])])
+def test_task_configs_compose_and_instantiate(task, names):
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("evaluate", overrides=[f"task={task}", "divergence.energy_factor=7"])
+    tasks = [instantiate(c) for c in cfg.task.values()]
+    assert [t.name for t in tasks] == names
+    assert all(t.divergence.energy_factor == 7 for t in tasks if hasattr(t, "divergence"))
+
+
+def test_checkpoints_are_found_under_a_sweep_folder(tmp_path):
+    for run, files in (("0", ("last.ckpt", "best-step=5.ckpt")), ("1", ("last.ckpt",)), ("2/.hydra", ())):
+        (tmp_path / run / "checkpoints").mkdir(parents=True)
+        for name in files:
+            (tmp_path / run / "checkpoints" / name).write_bytes(b"")
+    last = find_checkpoints(checkpoints_dir=str(tmp_path))
+    assert [p.relative_to(tmp_path).as_posix() for p in last] == ["0/checkpoints/last.ckpt", "1/checkpoints/last.ckpt"]
+    best = find_checkpoints(checkpoints_dir=str(tmp_path), checkpoint="best")
+    assert [p.name for p in best] == ["best-step=5.ckpt"]
+    with pytest.raises(FileNotFoundError):
+        find_checkpoints(ckpt_path=str(tmp_path / "missing.ckpt"))
+
+
+# ---- evaluate.py on tiny trained checkpoints --------------------------------------------------
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A 30-frame dataset and a sweep of two tiny models (R-GNS, GNS), 10 training steps each."""
+    root = tmp_path_factory.mktemp("evaluate")
+    data = root / "data"
+    rng = np.random.default_rng(0)
+    for split, count in zip(SPLITS, (3, 2, 2)):
+        write_split(data / f"{split}.h5", [random_trajectory(rng, frames=FRAMES) for _ in range(count)])
+    write_metadata(data, make_metadata(frames=FRAMES))
+    subprocess.run(
+        [sys.executable, "train.py", "-m", "data=folder", f"data.root={data}", "model=rgns,gns", "model.latent=16",
+         "model.layers=2", "trainer=cpu", "trainer.max_steps=10", "trainer.val_check_interval=5",
+         "data.num_workers=0", "logger=tensorboard", f"hydra.sweep.dir={root / 'sweep'}"],
+        cwd=ROOT, env=ENV, check=True, capture_output=True, timeout=300)
+    return root
+
+
+def markdown_tables(text: str) -> dict[str, dict[str, list[str]]]:
+    """Each table of a markdown text, keyed by the heading above it: {first cell: cells} (row
+    of the header included under its own first cell)."""
+    tables, heading = {}, None
+    for block in re.split(r"\n\s*\n", text):
+        lines = block.strip().splitlines()
+        if lines and lines[0].startswith("#"):
+            heading = lines[0].lstrip("# ")
+        elif lines and lines[0].startswith("|"):
+            rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines if not line.startswith("|---")]
+            tables[heading if heading not in tables else f"{heading} #{len(tables)}"] = {r[0]: r[1:] for r in rows}
+    return tables
+
+
+def value(cell: str) -> float:
+    return float(cell.replace("**", "").replace("≥", "").strip())
+
+
+def assert_cells(table: dict[str, list[str]], row: str, expected: dict[str, float | None], scale: float = 1.0):
+    labels = table[next(iter(table))]  # the header row
+    for label, cell in zip(labels, table[row]):
+        if expected.get(label) is None:
+            assert cell == "—", (row, label, cell)
+        else:
+            assert value(cell) == pytest.approx(expected[label] * scale, rel=1e-3, abs=1e-12), (row, label, cell)
+
+
+def test_evaluate_sweep_writes_report_json_and_charts(trained):
+    out = trained / "report"
+    subprocess.run([sys.executable, "evaluate.py", f"checkpoints_dir={trained / 'sweep'}", *FAST,
+                    f"hydra.run.dir={out}"], cwd=ROOT, env=ENV, check=True, capture_output=True, timeout=300)
+    for name in ("results.json", "report.md", "accuracy_vs_speed.png", "error_vs_step.png", "consistency_vs_k.png"):
+        assert (out / name).stat().st_size > 0, name
+    for name in ("accuracy_vs_speed.png", "error_vs_step.png", "consistency_vs_k.png"):
+        assert Image.open(out / name).size[0] > 500
+    for name in ("forward_data.gif", "inverse_data.gif"):
+        assert Image.open(out / name).n_frames > 2
+
+    results = json.loads((out / "results.json").read_text())
+    data = results["datasets"]["data"]
+    assert set(data["forward"]["methods"]) == {"R-GNS 16x2", "GNS 16x2", "Const. velocity"}
+    assert set(data["inverse"]["methods"]) == {"R-GNS 16x2", "Const. velocity"}  # GNS is forward only
+    forward, inverse, cost, summary = (data[k]["methods"] if k != "summary" else data[k]
+                                       for k in ("forward", "inverse", "efficiency", "summary"))
+    steps = FRAMES - 1 - 5
+    assert data["forward"]["settings"]["steps"] == steps and len(forward["GNS 16x2"]["mse_per_step"]) == steps
+    assert data["inverse"]["settings"]["horizons"] == [1, 5, 10, 20]
+    assert inverse["R-GNS 16x2"]["horizons"]["5"]["inverse_mse"] == 0.0  # frame t0 is in the history when K <= k
+    assert cost["R-GNS 16x2"]["parameters"] < cost["GNS 16x2"]["parameters"]  # half of a GNS, as in the paper
+    assert all(row["forward_ms_per_step"] > 0 for row in cost.values())
+
+    tables = markdown_tables((out / "report.md").read_text())
+    K = data["inverse"]["settings"]["table_horizon"]
+    assert_cells(tables["Rollout MSE (1e-3) in the forward process"], "data",
+                 {m: r["rollout_mse"] for m, r in forward.items()}, 1e3)
+    efficiency = tables["Efficiency comparison on data"]
+    assert_cells(efficiency, "Parameter Count (M)", {m: r["parameters"] for m, r in cost.items()}, 1e-6)
+    assert_cells(efficiency, "Forward Inference Time (ms/step)", {m: r["forward_ms_per_step"] for m, r in cost.items()})
+    assert_cells(efficiency, "Inverse Inference Time (ms/step)", {m: r.get("inverse_ms_per_step") for m, r in cost.items()})
+    assert_cells(efficiency, "Inference Memory (MB)", {m: r["forward_memory_mb"] for m, r in cost.items()})
+    comparison = tables[f"Inverse inference comparison on data (inverse step = {K})"]
+    assert_cells(comparison, "Consistency MSE (1e-3)",
+                 {m: r["horizons"][str(K)]["consistency_mse"] for m, r in inverse.items()}, 1e3)
+    assert_cells(comparison, "Inverse MSE (1e-3)", {m: r["horizons"][str(K)]["inverse_mse"] for m, r in inverse.items()}, 1e3)
+    assert_cells(comparison, f"Inference Time, {K} inverse steps (s)",
+                 {m: K * cost[m]["inverse_ms_per_step"] / 1e3 for m in inverse})
+    assert_cells(comparison, "Max Stable Steps", {m: r["max_stable_steps"] for m, r in inverse.items()})
+    by_k = tables[f"Consistency and inverse MSE (1e-3) against the inverse steps K on data"]
+    for k in ("1", "10", "20"):
+        assert_cells(by_k, k, {f"Consistency {m}": r["horizons"][k]["consistency_mse"] for m, r in inverse.items()}
+                     | {f"Inverse {m}": r["horizons"][k]["inverse_mse"] for m, r in inverse.items()}, 1e3)
+    assert summary["R-GNS 16x2"]["rollout_mse"] == forward["R-GNS 16x2"]["rollout_mse"]
+    assert results["command"].startswith("python evaluate.py checkpoints_dir=")
+
+
+def test_evaluate_one_checkpoint_forward_task_only(trained, tmp_path):
+    checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=forward", f"output_dir={tmp_path}",
+                                             "task.forward.steps=8", "baselines=null", *FAST[:3]])
+    results = evaluate(cfg)
+    data = results["datasets"]["data"]
+    assert "inverse" not in data and data["forward"]["settings"]["steps"] == 8
+    assert len(data["forward"]["methods"]) == 1  # no baseline
+    report = (tmp_path / "report.md").read_text()
+    assert "Inverse inference comparison" not in report and "forward_data.gif" in report
+    assert not (tmp_path / "consistency_vs_k.png").exists() and (tmp_path / "error_vs_step.png").is_file()
