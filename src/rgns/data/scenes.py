@@ -13,6 +13,7 @@ process that simulates).
 """
 from __future__ import annotations
 
+import inspect
 import math
 from typing import Callable, Sequence
 
@@ -44,7 +45,8 @@ class Scene:
         spacing: distance between neighbouring particles at rest (m).
         material: particle type of the moving particles (5 water, 6 sand).
         solver: a partial of a solver class (``rollout(position, velocity, material, num_frames,
-            obstacles)``), completed here with dim, bounds, frame_dt, gravity and capacity.
+            obstacles)``), completed here with dim, bounds, frame_dt, gravity and capacity, and
+            spacing where the solver takes one (SPH).
         capacity: the most particles one trajectory may have.
         num_frames: frames per trajectory (``sequence_length + 1``).
         splits: trajectories per split, ``{train, valid, test}``.
@@ -66,8 +68,11 @@ class Scene:
     @property
     def solver(self):
         if self._solver is None:
-            self._solver = self._solver_factory(dim=self.dim, bounds=self.bounds.tolist(), frame_dt=self.dt,
-                                                gravity=self.gravity, capacity=self.capacity)
+            scene = dict(dim=self.dim, bounds=self.bounds.tolist(), frame_dt=self.dt, gravity=self.gravity,
+                         capacity=self.capacity)
+            if "spacing" in inspect.signature(self._solver_factory).parameters:  # SPH: the mass and kernel size
+                scene["spacing"] = self.spacing
+            self._solver = self._solver_factory(**scene)
         return self._solver
 
     def sample(self, rng: np.random.Generator) -> dict:

@@ -2,18 +2,34 @@
 
 - density by summation over fluid and wall particles, Tait equation of state
   ``p = B ((rho / rho0)^7 - 1)`` clamped at 0 (no tension at the free surface),
-  ``B = rho0 c^2 / 7``; cubic-spline kernel, smoothing length ``1.2 * spacing``;
+  ``B = rho0 c^2 / 7``; cubic-spline kernel, smoothing length ``1.2 * spacing``; the particle mass
+  is ``rho0`` over the kernel sum of the rest lattice, so a lattice at rest has density ``rho0``
+  exactly (the cubic spline sums to 1.0008 / spacing^3 in 3D: 0.6% of B as a spurious pressure);
 - momentum: symmetric pressure gradient, Monaghan's artificial viscosity, gravity;
   symplectic Euler;
-- walls: three layers of fixed wall particles outside the box, at the fluid's spacing; they add
-  to the density and push back with the fluid particle's own (mirrored) pressure (Akinci et al.
-  2012), free slip. A particle that still crosses a wall is put back on it.
+- walls: layers of fixed wall particles outside the box, at the fluid's spacing, as deep as the
+  kernel reaches. They add to the fluid's density and carry the pressure extrapolated from
+  the fluid around them, hydrostatic term included (Adami, Hu & Adams 2012, eq. 27):
+  ``p_w = (sum_f p_f W_wf + g . sum_f rho_f (x_w - x_f) W_wf) / sum_f W_wf`` and the density of
+  that pressure by the equation of state; free slip. A particle that still crosses a wall is put
+  back on it.
 
 Gradients (reverse mode, Taichi autodiff) of the final positions and velocities with respect to
-the initial ones: :meth:`SPHSolver.forward` keeps one checkpoint (positions, velocities) per frame
-on the host; :meth:`SPHSolver.backward` replays each frame from its checkpoint, newest first, and
-back-propagates through its substeps. Device memory is one frame's substeps
-(``substeps x N``); host memory ``2 x frames x N x D`` floats.
+the initial ones::
+
+    xK, vK = solver.forward(x0, v0, K)          # [N, D] each, keeps one checkpoint per frame
+    gx0, gv0 = solver.backward(dL_dxK, dL_dvK)  # dL_dvK may be None
+
+:meth:`SPHSolver.forward` keeps one checkpoint (positions, velocities) per frame on the host;
+:meth:`SPHSolver.backward` replays each frame from its checkpoint, newest first, and
+back-propagates through its substeps (kernel gradients in the reverse order of the forward
+calls). Device memory is one frame's substeps (``substeps x N``); host memory
+``2 x frames x N x D`` floats. The neighbour lists are built outside the differentiated kernels
+and held constant (the kernel and its derivative vanish at the edge of its support, so a pair
+entering or leaving a list changes nothing to first order).
+
+In ``dtype="f64"`` every constant is cast to f64 in the kernels (a bare Python float in a Taichi
+kernel is an f32 literal), so finite differences agree with the gradients to ~1e-8 (tested).
 """
 # no `from __future__ import annotations`: Taichi reads kernel annotations at runtime
 
@@ -37,6 +53,20 @@ def wall_particles(bounds: np.ndarray, spacing: float, layers: int) -> np.ndarra
     return points[outside]
 
 
+def cubic_spline(r: np.ndarray, h: float, dim: int) -> np.ndarray:
+    """The cubic-spline kernel ``W(r)`` of smoothing length ``h`` (numpy; the kernels' twin)."""
+    sigma = 10.0 / (7.0 * math.pi * h**2) if dim == 2 else 1.0 / (math.pi * h**3)
+    q = r / h
+    return 0.25 * sigma * (np.maximum(2.0 - q, 0.0) ** 3 - 4.0 * np.maximum(1.0 - q, 0.0) ** 3)
+
+
+def lattice_kernel_sum(spacing: float, h: float, dim: int) -> float:
+    """``sum_j W(|x_j|)`` over an infinite square lattice of ``spacing`` (the rest density / mass)."""
+    reach = int(math.ceil(2 * h / spacing))
+    offsets = np.stack(np.meshgrid(*[np.arange(-reach, reach + 1)] * dim, indexing="ij"), -1).reshape(-1, dim)
+    return float(cubic_spline(np.linalg.norm(offsets * spacing, axis=-1), h, dim).sum())
+
+
 @ti.data_oriented
 class SPHSolver:
     """WCSPH, differentiable.
@@ -50,7 +80,7 @@ class SPHSolver:
         gravity: ``[dim]`` m/s^2.
         density: rest density; sound_speed: c (m/s), ~10x the largest flow speed.
         viscosity: Monaghan's alpha.
-        max_neighbours: neighbour slots per particle.
+        max_neighbours: neighbour slots per particle (fluid and wall each).
         dtype: ``"f32"`` or ``"f64"`` (f64 for finite-difference checks).
     """
 
@@ -71,24 +101,32 @@ class SPHSolver:
         self.B = density * sound_speed**2 / 7.0
         self.h = 1.2 * spacing  # smoothing length; the kernel reaches 2h
         self.support = 2.0 * self.h
-        self.mass = density * spacing**dim
         self.sigma = 10.0 / (7.0 * math.pi * self.h**2) if dim == 2 else 1.0 / (math.pi * self.h**3)
+        self.mass = density / lattice_kernel_sum(spacing, self.h, dim)  # a rest lattice has density rho0
         self.max_neighbours = max_neighbours or (64 if dim == 2 else 160)
 
         walls = wall_particles(bounds, spacing, layers=int(math.ceil(self.support / spacing)))
         self.num_walls = len(walls)
         real = ti.f64 if dtype == "f64" else ti.f32
         self.real = real
+        self.np_real = np.float64 if dtype == "f64" else np.float32
         vec = ti.types.vector(dim, real)
-        S = substeps
+        S, M = substeps, max(self.num_walls, 1)
         self.x = ti.field(vec, (S + 1, capacity), needs_grad=True)  # positions within one frame
         self.v = ti.field(vec, (S + 1, capacity), needs_grad=True)
         self.rho = ti.field(real, (S, capacity), needs_grad=True)
         self.p = ti.field(real, (S, capacity), needs_grad=True)
-        self.wall = ti.field(vec, max(self.num_walls, 1))
-        self.wall.from_numpy(walls.astype(np.float64 if dtype == "f64" else np.float32))
-        self.neighbours = ti.field(ti.i32, (S, capacity, self.max_neighbours))  # >= capacity: wall
+        self.wall = ti.field(vec, M)
+        self.wall.from_numpy(walls.astype(self.np_real))
+        # Adami's extrapolation: numerator and denominator, then the wall's pressure and density
+        self.wall_sum_p = ti.field(real, (S, M), needs_grad=True)
+        self.wall_sum_W = ti.field(real, (S, M), needs_grad=True)
+        self.wall_p = ti.field(real, (S, M), needs_grad=True)
+        self.wall_rho = ti.field(real, (S, M), needs_grad=True)
+        self.neighbours = ti.field(ti.i32, (S, capacity, self.max_neighbours))  # fluid indices
         self.num_neighbours = ti.field(ti.i32, (S, capacity))
+        self.wall_neighbours = ti.field(ti.i32, (S, capacity, self.max_neighbours))  # wall indices
+        self.num_wall_neighbours = ti.field(ti.i32, (S, capacity))
         self.overflow = ti.field(ti.i32, ())
         self.num_particles = ti.field(ti.i32, ())
         # uniform cell grid of side `support` over the box and its walls
@@ -105,37 +143,38 @@ class SPHSolver:
     @ti.func
     def W(self, r):
         """Cubic spline, branch-free: sigma/4 ((2 - q)_+^3 - 4 (1 - q)_+^3), q = r / h."""
-        q = r / self.h
-        return 0.25 * self.sigma * (ti.max(2.0 - q, 0.0) ** 3 - 4.0 * ti.max(1.0 - q, 0.0) ** 3)
+        q = r / self.real(self.h)
+        return self.real(0.25 * self.sigma) * (ti.max(2.0 - q, 0.0) ** 3 - 4.0 * ti.max(1.0 - q, 0.0) ** 3)
 
     @ti.func
     def dW(self, r):
         """dW/dr."""
-        q = r / self.h
-        return -0.75 * self.sigma / self.h * (ti.max(2.0 - q, 0.0) ** 2 - 4.0 * ti.max(1.0 - q, 0.0) ** 2)
+        q = r / self.real(self.h)
+        return self.real(-0.75 * self.sigma / self.h) * (ti.max(2.0 - q, 0.0) ** 2 - 4.0 * ti.max(1.0 - q, 0.0) ** 2)
 
     @ti.func
     def cell_of(self, pos):
         return ti.cast((pos - ti.Vector(self.cell_origin)) / self.support, ti.i32)
 
     @ti.func
-    def position(self, s, k):
-        """Position of particle k at substep s: fluid below capacity, wall above."""
-        result = ti.Vector.zero(self.real, self.dim)
-        if k < self.capacity:
-            result = self.x[s, k]
-        else:
-            result = self.wall[k - self.capacity]
-        return result
+    def distance(self, r):
+        return ti.max(r.norm(), self.real(1e-9 * self.h))
 
     # ------------------------------------------------------------------ neighbours (not differentiated)
     @ti.kernel
     def find_neighbours(self, s: ti.i32):
+        """Neighbour lists of substep ``s``: fluid (``neighbours``) and wall (``wall_neighbours``)."""
         for I in ti.grouped(self.cell_count):
             self.cell_count[I] = 0
         for k in range(self.num_particles[None] + self.num_walls):
-            index = k if k < self.num_particles[None] else self.capacity + k - self.num_particles[None]
-            cell = self.cell_of(self.position(s, index))
+            pos = self.wall[0]
+            index = k  # fluid 0..n-1; wall capacity + j
+            if k < self.num_particles[None]:
+                pos = self.x[s, k]
+            else:
+                pos = self.wall[k - self.num_particles[None]]
+                index = self.capacity + k - self.num_particles[None]
+            cell = self.cell_of(pos)
             slot = ti.atomic_add(self.cell_count[cell], 1)
             if slot < self.cell_capacity:
                 self.cell_items[cell, slot] = index
@@ -144,70 +183,122 @@ class SPHSolver:
         for i in range(self.num_particles[None]):
             xi = self.x[s, i]
             cell = self.cell_of(xi)
-            count = 0
+            count, wall_count = 0, 0
             for offset in ti.static(ti.grouped(ti.ndrange(*((-1, 2),) * self.dim))):
                 c = cell + offset
                 for slot in range(ti.min(self.cell_count[c], self.cell_capacity)):
                     k = self.cell_items[c, slot]
-                    if k != i and (xi - self.position(s, k)).norm() < self.support:
-                        if count < self.max_neighbours:
-                            self.neighbours[s, i, count] = k
-                            count += 1
+                    if k < self.capacity:
+                        if k != i and (xi - self.x[s, k]).norm() < self.support:
+                            if count < self.max_neighbours:
+                                self.neighbours[s, i, count] = k
+                                count += 1
+                            else:
+                                self.overflow[None] = 1
+                    elif (xi - self.wall[k - self.capacity]).norm() < self.support:
+                        if wall_count < self.max_neighbours:
+                            self.wall_neighbours[s, i, wall_count] = k - self.capacity
+                            wall_count += 1
                         else:
                             self.overflow[None] = 1
             self.num_neighbours[s, i] = count
+            self.num_wall_neighbours[s, i] = wall_count
 
     @ti.kernel
     def clear_fields(self):
+        """Start values of the accumulated fields. A particle's own share of its density, m W(0),
+        is a constant: it is set here, outside the differentiated kernels."""
         for s, i in self.rho:
-            self.rho[s, i] = 0.0
+            self.rho[s, i] = self.real(self.mass * self.sigma)
+        for s, w in self.wall_p:
+            self.wall_sum_p[s, w] = 0.0
+            self.wall_sum_W[s, w] = 0.0
+            self.wall_p[s, w] = 0.0
+            self.wall_rho[s, w] = self.real(self.rho0)
 
     # ------------------------------------------------------------------ differentiable substep
+    # Taichi 1.7's reverse mode gets a neighbour sum wrong (by 10-40%, measured) when the sum is
+    # carried in a local variable across the dynamic neighbour loop, or when the same field
+    # element is also written before that loop in the same kernel (the compiler turns it into
+    # such a local). So every neighbour sum below adds straight into a global field inside the
+    # innermost loop, one kernel per sum, with no branch that chooses what to read.
     @ti.kernel
-    def density(self, s: ti.i32):
+    def density_fluid(self, s: ti.i32):
         for i in range(self.num_particles[None]):
-            self.rho[s, i] += self.mass * self.sigma  # the particle itself: W(0) = sigma
             for n in range(self.num_neighbours[s, i]):
-                k = self.neighbours[s, i, n]
-                r = self.x[s, i] - self.position(s, k)
-                distance = ti.max(r.norm(), 1e-9 * self.h)
-                self.rho[s, i] += self.mass * self.W(distance)
+                r = self.x[s, i] - self.x[s, self.neighbours[s, i, n]]
+                self.rho[s, i] += self.real(self.mass) * self.W(self.distance(r))
+
+    @ti.kernel
+    def density_wall(self, s: ti.i32):
+        for i in range(self.num_particles[None]):
+            for n in range(self.num_wall_neighbours[s, i]):
+                r = self.x[s, i] - self.wall[self.wall_neighbours[s, i, n]]
+                self.rho[s, i] += self.real(self.mass) * self.W(self.distance(r))
 
     @ti.kernel
     def pressure(self, s: ti.i32):
         for i in range(self.num_particles[None]):
-            self.p[s, i] = self.B * ti.max((self.rho[s, i] / self.rho0) ** 7 - 1.0, 0.0)
+            self.p[s, i] = self.real(self.B) * ti.max((self.rho[s, i] / self.real(self.rho0)) ** 7 - 1.0, 0.0)
+
+    @ti.kernel
+    def wall_sums(self, s: ti.i32):
+        """Adami's sums over the fluid around each wall particle, scattered from the fluid side."""
+        for i in range(self.num_particles[None]):
+            for n in range(self.num_wall_neighbours[s, i]):
+                g = ti.Vector(self.gravity, self.real)
+                w = self.wall_neighbours[s, i, n]
+                r = self.wall[w] - self.x[s, i]  # wall minus fluid
+                weight = self.W(self.distance(r))
+                self.wall_sum_p[s, w] += (self.p[s, i] + self.rho[s, i] * g.dot(r)) * weight
+                self.wall_sum_W[s, w] += weight
+
+    @ti.kernel
+    def wall_state(self, s: ti.i32):
+        for w in range(self.num_walls):
+            if self.wall_sum_W[s, w] > 0.0:
+                pressure = ti.max(self.wall_sum_p[s, w] / self.wall_sum_W[s, w], 0.0)
+                self.wall_p[s, w] = pressure  # (a field written here is never read back here)
+                self.wall_rho[s, w] = self.real(self.rho0) * (pressure / self.real(self.B) + 1.0) ** self.real(1.0 / 7.0)
 
     @ti.kernel
     def gravity_step(self, s: ti.i32):
         for i in range(self.num_particles[None]):
-            self.v[s + 1, i] = self.v[s, i] + self.dt * ti.Vector(self.gravity, self.real)
+            self.v[s + 1, i] = self.v[s, i] + self.real(self.dt) * ti.Vector(self.gravity, self.real)
 
     @ti.kernel
-    def forces(self, s: ti.i32):
+    def forces_fluid(self, s: ti.i32):
+        """Symmetric pressure gradient and Monaghan's artificial viscosity between fluid particles."""
         for i in range(self.num_particles[None]):
-            pi_term = self.p[s, i] / self.rho[s, i] ** 2
             for n in range(self.num_neighbours[s, i]):
                 k = self.neighbours[s, i, n]
-                r = self.x[s, i] - self.position(s, k)
-                distance = ti.max(r.norm(), 1e-9 * self.h)
+                r = self.x[s, i] - self.x[s, k]
+                distance = self.distance(r)
                 grad_W = self.dW(distance) * r / distance  # [D]
-                if k < self.capacity:  # fluid: pressure and artificial viscosity
-                    v_ij = self.v[s, i] - self.v[s, k]
-                    mu = self.h * ti.min(v_ij.dot(r), 0.0) / (distance**2 + 0.01 * self.h**2)
-                    rho_mean = 0.5 * (self.rho[s, i] + self.rho[s, k])
-                    viscous = -self.alpha * self.sound_speed * mu / rho_mean
-                    pk_term = self.p[s, k] / self.rho[s, k] ** 2
-                    self.v[s + 1, i] += -self.dt * self.mass * (pi_term + pk_term + viscous) * grad_W
-                else:  # wall: mirrored pressure
-                    self.v[s + 1, i] += -self.dt * self.mass * 2.0 * pi_term * grad_W
+                v_ij = self.v[s, i] - self.v[s, k]
+                mu = self.real(self.h) * ti.min(v_ij.dot(r), 0.0) / (distance**2 + self.real(0.01 * self.h**2))
+                viscous = self.real(-self.alpha * self.sound_speed) * mu / (0.5 * (self.rho[s, i] + self.rho[s, k]))
+                pressure = self.p[s, i] / self.rho[s, i] ** 2 + self.p[s, k] / self.rho[s, k] ** 2
+                self.v[s + 1, i] += self.real(-self.dt * self.mass) * (pressure + viscous) * grad_W
+
+    @ti.kernel
+    def forces_wall(self, s: ti.i32):
+        """Pressure between a fluid particle and the wall particles, with their extrapolated pressure."""
+        for i in range(self.num_particles[None]):
+            for n in range(self.num_wall_neighbours[s, i]):
+                w = self.wall_neighbours[s, i, n]
+                r = self.x[s, i] - self.wall[w]
+                distance = self.distance(r)
+                grad_W = self.dW(distance) * r / distance
+                pressure = self.p[s, i] / self.rho[s, i] ** 2 + self.wall_p[s, w] / self.wall_rho[s, w] ** 2
+                self.v[s + 1, i] += self.real(-self.dt * self.mass) * pressure * grad_W
 
     @ti.kernel
     def advect(self, s: ti.i32):
         for i in range(self.num_particles[None]):
-            x_new = self.x[s, i] + self.dt * self.v[s + 1, i]
+            x_new = self.x[s, i] + self.real(self.dt) * self.v[s + 1, i]
             for d in ti.static(range(self.dim)):
-                x_new[d] = ti.min(ti.max(x_new[d], self.lower[d]), self.upper[d])
+                x_new[d] = ti.min(ti.max(x_new[d], self.real(self.lower[d])), self.real(self.upper[d]))
             self.x[s + 1, i] = x_new
 
     @ti.kernel
@@ -217,25 +308,24 @@ class SPHSolver:
             self.x[0, i] = self.x[self.substeps, i]
             self.v[0, i] = self.v[self.substeps, i]
 
+    def _substep_kernels(self) -> tuple:
+        """The differentiated kernels of one substep, in forward order."""
+        return (self.density_fluid, self.density_wall, self.pressure, self.wall_sums, self.wall_state,
+                self.gravity_step, self.forces_fluid, self.forces_wall, self.advect)
+
     def _frame(self) -> None:
         self.clear_fields()
         for s in range(self.substeps):
-            self.find_neighbours(s)
-            self.density(s)
-            self.pressure(s)
-            self.gravity_step(s)
-            self.forces(s)
-            self.advect(s)
+            self.find_neighbours(s)  # held constant: the lists are not differentiated
+            for kernel in self._substep_kernels():
+                kernel(s)
         if self.overflow[None]:
             raise RuntimeError("SPH neighbour or cell slots overflowed: raise max_neighbours / cell_capacity")
 
     def _frame_backward(self) -> None:
         for s in reversed(range(self.substeps)):
-            self.advect.grad(s)
-            self.forces.grad(s)
-            self.gravity_step.grad(s)
-            self.pressure.grad(s)
-            self.density.grad(s)
+            for kernel in reversed(self._substep_kernels()):
+                kernel.grad(s)
 
     # ------------------------------------------------------------------ python side
     def _load(self, position: np.ndarray, velocity: np.ndarray) -> None:
@@ -273,6 +363,14 @@ class SPHSolver:
             raise FloatingPointError("SPH rollout produced NaN or Inf; raise substeps")
         return trajectory
 
+    def velocities(self) -> np.ndarray:
+        """Velocities ``[N, D]`` (m/s) at the end of the last frame simulated."""
+        return self._state(0)[1]
+
+    def pressures(self) -> np.ndarray:
+        """Pressures ``[N]`` (Pa) of the last substep simulated (the equation of state of its density)."""
+        return self.p.to_numpy()[self.substeps - 1, : self.num_particles[None]].astype(float)
+
     def forward(self, position: np.ndarray, velocity: np.ndarray, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
         """Advance ``num_frames`` frames from ``position``, ``velocity`` ``[N, D]``, keeping one
         checkpoint per frame for :meth:`backward`. Returns the final positions and velocities."""
@@ -298,9 +396,8 @@ class SPHSolver:
         for position, velocity in reversed(self._checkpoints):
             self._load(position, velocity)
             self._frame()  # replay the frame from its checkpoint
-            for field in (self.x, self.v):
-                field.grad.fill(0)
-            for field in (self.rho, self.p):
+            for field in (self.x, self.v, self.rho, self.p, self.wall_sum_p, self.wall_sum_W, self.wall_p,
+                          self.wall_rho):
                 field.grad.fill(0)
             seed_x = np.zeros((self.substeps + 1, self.capacity, self.dim), np_real)
             seed_v = np.zeros_like(seed_x)

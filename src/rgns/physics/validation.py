@@ -49,6 +49,17 @@ def resting_tank(solver, depth: float, spacing: float, num_frames: int = 401, hy
     return solver.rollout(tank, np.zeros_like(tank), np.full(len(tank), WATER), num_frames, **kwargs)
 
 
+def hydrostatic_profile(position: np.ndarray, pressure: np.ndarray, spacing: float, bins: int = 6
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean depth and mean pressure in ``bins`` equal layers of a settled tank ``position [N, D]``
+    (y is axis 1); the free surface is half a spacing above the highest particle."""
+    depth = position[:, 1].max() + 0.5 * spacing - position[:, 1]
+    layer = np.minimum((depth / depth.max() * bins).astype(int), bins - 1)
+    mean_depth = np.array([depth[layer == b].mean() for b in range(bins)])
+    mean_pressure = np.array([pressure[layer == b].mean() for b in range(bins)])
+    return mean_depth, mean_pressure
+
+
 def main(argv: list[str] | None = None) -> None:
     import matplotlib
 
@@ -86,20 +97,32 @@ def main(argv: list[str] | None = None) -> None:
     fig.tight_layout()
     fig.savefig(out / "validation_dambreak.png", dpi=120)
 
-    fig, ax = plt.subplots(figsize=(5, 3.6))
-    depth = 0.12
+    fig, (ax, ax_p) = plt.subplots(1, 2, figsize=(9, 3.6))
+    depth, num_frames = 0.12, 801
     for name, solver in solvers.items():
-        # MPM starts with its hydrostatic pressure; SPH (no such option) from an uncompressed lattice
-        trajectory = resting_tank(solver, depth=depth, spacing=getattr(solver, "spacing", 0.008), num_frames=401,
+        # MPM starts with its hydrostatic pressure; SPH (whose density is a sum over the particles)
+        # from an uncompressed lattice, so it first settles
+        spacing = getattr(solver, "spacing", 0.008)
+        trajectory = resting_tank(solver, depth=depth, spacing=spacing, num_frames=num_frames,
                                   hydrostatic=name == "MLS-MPM")
         speed = np.linalg.norm(np.diff(trajectory, axis=0), axis=-1).max(1) / solver.frame_dt
         t = np.arange(1, len(trajectory)) * solver.frame_dt
         print(f"resting tank {name}: max speed over the last 0.1 s {speed[-40:].max():.2e} m/s "
               f"(bound {0.01 * np.sqrt(G * depth):.2e})")
         ax.semilogy(t, speed, label=name)
+        if hasattr(solver, "pressures"):
+            T, P = hydrostatic_profile(trajectory[-1], solver.pressures(), spacing)
+            print(f"resting tank {name}: mean depth (m) {np.round(T, 4).tolist()}, mean pressure / (rho0 g depth) "
+                  f"{np.round(P / (1000.0 * G * T), 3).tolist()}")
+            ax_p.plot(T, P, "o-", color=ax.lines[-1].get_color(), label=f"{name} (layer means at t = 2 s)")
     ax.axhline(0.01 * np.sqrt(G * depth), color="k", ls="--", label="1% of sqrt(g depth)")
     ax.set(xlabel="t (s)", ylabel="max particle speed (m/s)")
     ax.legend(fontsize=8)
+    line = np.linspace(0, depth, 2)
+    ax_p.plot(line, 1000.0 * G * line, "k--", label="rho0 g depth")
+    ax_p.fill_between(line, 0.9 * 1000.0 * G * line, 1.1 * 1000.0 * G * line, color="0.85", label="±10%")
+    ax_p.set(xlabel="depth below the free surface (m)", ylabel="pressure (Pa)")
+    ax_p.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "validation_tank.png", dpi=120)
 
