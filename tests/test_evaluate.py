@@ -205,3 +205,23 @@ def test_evaluate_one_checkpoint_forward_task_only(trained, tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "Inverse inference comparison" not in report and "forward_data.gif" in report
     assert not (tmp_path / "consistency_vs_k.png").exists() and (tmp_path / "error_vs_step.png").is_file()
+
+
+def test_evaluate_goal_task_writes_figure_gif_and_matching_table(trained, tmp_path):
+    checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=goal", "goal.text=L", "goal.height=0.1",
+                                             "goal.steps=3", "task.goal.optimiser=null", "baselines=null",
+                                             f"output_dir={tmp_path}", "trajectories=1"])
+    results = evaluate(cfg)
+    goal = results["datasets"]["data"]["goal"]
+    assert {"goal_L.png", "goal_L.gif"} <= set(goal["files"])
+    assert all((tmp_path / "goal_data" / f).is_file() for f in goal["files"])
+    (label,) = goal["methods"]
+    tables = markdown_tables((tmp_path / "report.md").read_text())
+    (table,) = [t for heading, t in tables.items() if heading.startswith("Goal-conditioned shaping on data")]
+    cells = dict(zip(table["Method"], table[label]))
+    metrics = goal["methods"][label]["metrics"]
+    assert value(cells["Chamfer (1e-5)"]) == pytest.approx(metrics["chamfer"] * 1e5, rel=1e-3)
+    assert value(cells["OT (1e-3)"]) == pytest.approx(metrics["ot"] * 1e3, rel=1e-3)
+    assert value(cells["Consistency MSE (1e-3)"]) == pytest.approx(metrics["consistency_mse"] * 1e3, rel=1e-3)

@@ -127,6 +127,64 @@ def inverse_tables(results: dict) -> list[str]:
     return out
 
 
+def optimisation_tables(results: dict) -> list[str]:
+    """task=inverse_optimisation: feed-forward against optimisation, per K, and long-rollout stability."""
+    out = []
+    for name, d in results["datasets"].items():
+        if "inverse_optimisation" not in d:
+            continue
+        section, s = d["inverse_optimisation"], d["inverse_optimisation"]["settings"]
+        methods, K = section["methods"], str(s["table_horizon"])
+        labels = list(methods)
+        rows = [
+            [f"Consistency MSE (1e-3), K = {K}", *(number(methods[m]["horizons"].get(K, {}).get("consistency_mse"), 1e3)
+                                                  for m in labels)],
+            [f"Inference Time, K = {K} (s)", *(number(methods[m]["horizons"].get(K, {}).get("seconds")) for m in labels)],
+            ["Max Stable Steps", *(steps_cell(methods[m]["max_stable_steps"], methods[m]["stable_beyond_tested"])
+                                   for m in labels)],
+        ]
+        by_k = [[k, *(number(methods[m]["horizons"].get(k, {}).get("consistency_mse"), 1e3) for m in labels),
+                 *(", ".join(methods[m]["horizons"].get(k, {}).get("statuses") or [GAP]) for m in labels)]
+                for k in (str(h) for h in s["horizons"])]
+        ratios = [[pair, number(ratio)] for pair, ratio in section["time_ratio_at_table_horizon"].items()]
+        stability = [[m, str(v["forward"]["stable_steps"]), str(v["inverse"]["stable_steps"])]
+                     for m, v in section.get("stability", {}).items()]
+        out += ["", f"## Feed-forward against optimisation on {name}", "",
+                f"{s['trajectories']} trajectory, {s['particles']} particles, from frame {s['start']}. Optimisers stop by "
+                f"one rule for all: {s['rule']}. Consistency: K forward frames of each method's own forward simulator "
+                f"from the initial state it found, against the truth at frame {s['start']} + K; stable while under "
+                f"{s['threshold']:g} and not failed.", "",
+                table(["Methods", *labels], rows, best_lowest={0, 1}), "",
+                table(["K", *(f"Consistency (1e-3) {m}" for m in labels), *(f"Status {m}" for m in labels)], by_k), "",
+                f"Time ratios at K = {K} (optimisation / feed-forward, one run):", "",
+                table(["Pair", "Ratio"], ratios)]
+        if stability:
+            out += ["", "Long rollouts: steps before divergence (NaN, leaving the box, kinetic energy blow-up):", "",
+                    table(["Method", "Forward stable steps", "Inverse stable steps"], stability)]
+    return out
+
+
+def goal_tables(results: dict) -> list[str]:
+    """task=goal: how closely each method reproduces the target shape."""
+    out = []
+    for name, d in results["datasets"].items():
+        if "goal" not in d:
+            continue
+        goal, labels = d["goal"], list(d["goal"]["methods"])
+        shape = goal["goal"]["text"] or goal["goal"]["mask"] or goal["goal"]["points"]
+        rows = [[m, number(goal["methods"][m]["metrics"]["chamfer"], 1e5), number(goal["methods"][m]["metrics"]["ot"], 1e3),
+                 number(goal["methods"][m]["metrics"]["consistency_mse"], 1e3), number(goal["methods"][m]["seconds"]),
+                 goal["methods"][m]["status"]] for m in labels]
+        figures = [f for f in goal["files"] if not f.endswith(".json")]
+        out += ["", f"## Goal-conditioned shaping on {name}: {shape!r}", "",
+                f"Target: {goal['particles']} particles at spacing {goal['spacing']:g}, at rest "
+                f"({goal['state_at_rest']}); {goal['steps']} inverse steps to an initial state, then {goal['steps']} "
+                "forward steps; the reproduced state against the target.", "",
+                table(["Method", "Chamfer (1e-5)", "OT (1e-3)", "Consistency MSE (1e-3)", "Time (s)", "Status"], rows), "",
+                *(f"![goal {f}](goal_{name}/{f})" for f in figures)]
+    return out
+
+
 def render(results: dict, charts: list[str]) -> str:
     methods = results["methods"]
     sources = [f"- {label}: `{info['source']}`" + (f" (step {info['global_step']})" if info.get("global_step") else "")
@@ -136,7 +194,8 @@ def render(results: dict, charts: list[str]) -> str:
              f"Reproduce with: `{results['command']}`", "",
              f"Run {results['date']} on {environment['device']} ({environment['threads']} thread(s)), "
              f"torch {environment['torch']}. Methods:", "", *sources, "",
-             *forward_tables(results), *efficiency_tables(results), *inverse_tables(results), "", "## Charts", ""]
+             *forward_tables(results), *efficiency_tables(results), *inverse_tables(results),
+             *optimisation_tables(results), *goal_tables(results), "", "## Charts", ""]
     lines += [f"![{_title(c)}]({c})" for c in charts]
     return "\n".join(lines) + "\n"
 
