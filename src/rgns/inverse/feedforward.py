@@ -57,26 +57,36 @@ def _stable(positions: Tensor, particle_type: Tensor, bounds: Tensor, margin: fl
                 stable_beyond_tested=broken is None)
 
 
+def _stability(model: Simulator, state: State, advance, particle_type: Tensor, speed: float, steps: int,
+               margin_radii: float, energy_factor: float, chunk: int) -> dict:
+    """Advance ``state`` ``steps`` times with ``advance(state, i)``, checking every ``chunk`` steps
+    and stopping early once the rollout breaks."""
+    margin = margin_radii * model.radius
+    frames = []
+    for i in range(steps):
+        state = advance(state, i)
+        frames.append(state.position)
+        if (i + 1) % chunk == 0 or i + 1 == steps:
+            row = _stable(torch.stack(frames), particle_type, model.bounds, margin, speed, energy_factor)
+            if row["diverged"]:
+                return dict(row, steps=steps, stable_beyond_tested=False)
+    return row
+
+
 @torch.no_grad()
 def forward_stability(model: Simulator, position: Tensor, particle_type: Tensor, start: int, steps: int = 1000,
                       margin_radii: float = 2.0, energy_factor: float = 100.0, chunk: int = 100) -> dict:
     """A forward rollout of ``steps`` frames from the true state at ``start`` of a trajectory
     ``[T, N, D]`` (past its end: kinematic particles stay at their last known positions), stopped
     early once it breaks. Returns ``stable_steps`` (the first broken step, 0-based, or ``steps``)."""
-    bounds = model.bounds
-    margin = margin_radii * model.radius
-    speed = reference_speed(position, particle_type)
     state = State.from_positions(position[start - model.history: start + 1], particle_type)
-    frames = []
-    for i in range(steps):
+
+    def advance(state: State, i: int) -> State:
         frame = start + 1 + i
-        state = model.step(state, kinematic_position=position[frame] if frame < len(position) else None)
-        frames.append(state.position)
-        if (i + 1) % chunk == 0 or i + 1 == steps:
-            row = _stable(torch.stack(frames), particle_type, bounds, margin, speed, energy_factor)
-            if row["diverged"]:
-                return dict(row, steps=steps, stable_beyond_tested=False)
-    return row
+        return model.step(state, kinematic_position=position[frame] if frame < len(position) else None)
+
+    return _stability(model, state, advance, particle_type, reference_speed(position, particle_type), steps,
+                      margin_radii, energy_factor, chunk)
 
 
 @torch.no_grad()
@@ -87,16 +97,6 @@ def inverse_stability(model: Simulator, position: Tensor, particle_type: Tensor,
     Returns ``stable_steps`` as :func:`forward_stability`."""
     if not model.bidirectional:
         raise ValueError(f"{type(model).__name__} has no inverse")
-    bounds = model.bounds
-    margin = margin_radii * model.radius
-    speed = reference_speed(position, particle_type)
     state = State.from_positions(position[end - model.history: end + 1], particle_type)
-    frames = []
-    for i in range(steps):
-        state = model.inverse_step(state)
-        frames.append(state.position)
-        if (i + 1) % chunk == 0 or i + 1 == steps:
-            row = _stable(torch.stack(frames), particle_type, bounds, margin, speed, energy_factor)
-            if row["diverged"]:
-                return dict(row, steps=steps, stable_beyond_tested=False)
-    return row
+    return _stability(model, state, lambda state, i: model.inverse_step(state), particle_type,
+                      reference_speed(position, particle_type), steps, margin_radii, energy_factor, chunk)
