@@ -26,6 +26,13 @@ MARKERS = "osD^v<>P*X"
 LINESTYLES = ("-", "--", "-.", ":")
 
 
+def save_figure(fig, path) -> None:
+    """Lay out, write a PNG at the project's resolution, and free the figure."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _colours(results: dict) -> dict[str, tuple]:
     cmap = plt.get_cmap("tab10")
     return {label: cmap(i % 10) for i, label in enumerate(results["methods"])}
@@ -64,9 +71,7 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
     ax.grid(True, which="both", alpha=0.3)
     ax.margins(0.25)
     ax.legend(fontsize=8, markerscale=0.5, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 
@@ -96,9 +101,7 @@ def error_vs_step(results: dict, path: Path) -> bool:
                      f"from frame {s['start']}; X: first broken step)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 
@@ -125,9 +128,7 @@ def consistency_vs_k(results: dict, path: Path) -> bool:
             ax.set_title(f"{name}: {title}", fontsize=10)
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 

@@ -41,6 +41,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from rgns.data.contract import WATER
 from rgns.evaluation.metrics import chamfer, optimal_transport
+from rgns.evaluation.plots import save_figure
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import SPHSimulator, dataset_spacing, sph_for_dataset
 from rgns.models import State
@@ -269,9 +270,7 @@ def goal_figure(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, tit
         row[1].set_title(f"inferred initial state ({run.seconds:.2f} s{note})", fontsize=9)
         row[0].set_title("target", fontsize=9)
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def goal_animation(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, fps: int = 10,

@@ -41,6 +41,7 @@ from rgns.data.contract import KINEMATIC, open_split, read_metadata
 from rgns.inverse.feedforward import feed_forward_inverse, forward_stability, inverse_stability
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import LearnedSimulator, SPHSimulator, sph_for_dataset
+from rgns.evaluation.plots import save_figure
 from rgns.models import State, count_parameters
 
 log = logging.getLogger(__name__)
@@ -314,9 +315,7 @@ def k_sweep_chart(results: dict, path: Path) -> None:
     right.set(xlabel="inverse steps K", ylabel="inverse inference time (s)", yscale="log", title="time vs K")
     left.legend(fontsize=8)
     right.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def run_inverse_comparison(models: dict, dataset_root: str | Path, horizons, out_dir: str | Path,
