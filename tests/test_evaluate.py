@@ -225,3 +225,24 @@ def test_evaluate_goal_task_writes_figure_gif_and_matching_table(trained, tmp_pa
     assert value(cells["Chamfer (1e-5)"]) == pytest.approx(metrics["chamfer"] * 1e5, rel=1e-3)
     assert value(cells["OT (1e-3)"]) == pytest.approx(metrics["ot"] * 1e3, rel=1e-3)
     assert value(cells["Consistency MSE (1e-3)"]) == pytest.approx(metrics["consistency_mse"] * 1e3, rel=1e-3)
+
+
+def test_two_dataset_folders_of_one_name_stay_apart(trained, tmp_path, monkeypatch):
+    """Checkpoints trained on two folders both called 'data' get two sections, not one overwritten."""
+    import shutil
+
+    import rgns.evaluation.run as run_module
+    from rgns.evaluation.methods import load_checkpoints
+
+    checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
+    twin = tmp_path / "elsewhere" / "data"
+    shutil.copytree(trained / "data", twin)
+    loaded = load_checkpoints([checkpoint], "cpu") + load_checkpoints([checkpoint], "cpu")
+    loaded[1].data_root = str(twin)
+    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device: loaded)
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=forward", f"output_dir={tmp_path / 'out'}",
+                                             "task.forward.steps=4", "baselines=null", *FAST[:3]])
+    results = evaluate(cfg)
+    assert sorted(results["datasets"]) == ["data", "data_2"]
+    assert {d["root"] for d in results["datasets"].values()} == {str((trained / "data").resolve()), str(twin.resolve())}

@@ -80,6 +80,8 @@ def evaluate(cfg: DictConfig) -> dict:
     for root, trained in by_root.items():
         history = trained[0].model.history
         dataset = Dataset.load(root, cfg.split, cfg.trajectories, history, cfg.start, cfg.device)
+        if dataset.name in results["datasets"]:  # two folders of one name (paths in sections["root"])
+            dataset.name = f"{dataset.name}_{len(results['datasets']) + 1}"
         compared = trained + build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)
         log.info("%s: %d trajectories, %s", dataset.name, len(dataset.trajectories), ", ".join(m.label for m in compared))
         sections, examples[dataset.name] = dict(root=root, split=cfg.split), {}
