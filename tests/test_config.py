@@ -84,7 +84,7 @@ def test_gpu_trainers_ask_for_gpus(tmp_path):
 def test_main_experiment_patches_only_its_deltas(tmp_path):
     cfg = train_cfg(tmp_path, "experiment=main")
     assert cfg.trainer.accelerator == "cpu"
-    assert (cfg.model.latent, cfg.model.layers) == (64, 4)
+    assert (cfg.model.latent, cfg.model.layers) == (32, 2)
     assert cfg.model._target_ == "rgns.models.RGNS"
     assert train_cfg(tmp_path, "experiment=main", "model=gns").model._target_ == "rgns.models.GNS"
 
