@@ -5,7 +5,6 @@ from pathlib import Path
 from typing import Callable
 
 import lightning as L
-from torch.utils.data import DataLoader as TorchDataLoader
 from torch_geometric.loader import DataLoader
 
 from rgns.data.contract import DatasetError, open_split, read_metadata
@@ -71,8 +70,6 @@ class ParticleDataModule(L.LightningDataModule):
             self.train_set = WindowDataset(self.split("train"), self.radius, self.history, self.noise_std)
             self.valid_set = WindowDataset(self.split("valid"), self.radius, self.history, 0.0)
             self.valid_trajectories = TrajectoryDataset(self.split("valid"))
-        if stage in (None, "test"):
-            self.test_trajectories = TrajectoryDataset(self.split("test"))
 
     def _loader(self, dataset, shuffle: bool) -> DataLoader:
         return DataLoader(
@@ -89,5 +86,3 @@ class ParticleDataModule(L.LightningDataModule):
     def val_dataloader(self) -> DataLoader:
         return self._loader(self.valid_set, shuffle=False)
 
-    def trajectory_loader(self, dataset: TrajectoryDataset) -> TorchDataLoader:
-        return TorchDataLoader(dataset, batch_size=None, shuffle=False)
