@@ -172,8 +172,11 @@ def test_rgns_memory_saving_gradients_equal_plain_gradients(options):
         model.processor.memory_saving = memory_saving
         model.zero_grad()
         graph = (batch.particle_type, batch.edge_index)
-        forward = model.next_velocity(batch.pos, batch.forward_input, *graph)
-        inverse = model.oldest_velocity(batch.pos, batch.inverse_input, *graph)
+        if memory_saving:  # the training step's call: both directions sharing their conditions
+            forward, inverse = model.both_velocities(batch.pos, batch.forward_input, batch.inverse_input, *graph)
+        else:  # one direction at a time
+            forward = model.next_velocity(batch.pos, batch.forward_input, *graph)
+            inverse = model.oldest_velocity(batch.pos, batch.inverse_input, *graph)
         loss = (((forward - batch.forward_target) / model.acc_std_noisy) ** 2).mean() \
             + (((inverse - batch.inverse_target) / model.acc_std_noisy) ** 2).mean()
         loss.backward()

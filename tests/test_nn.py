@@ -140,7 +140,7 @@ def test_coupling_reads_neighbours_and_conditions():
     x, condition = torch.randn(4, 8), torch.randn(4, 5)
     edge_index = torch.tensor([[0], [1]])  # 0 -> 1; nodes 2 and 3 alone
     edge_attr = torch.randn(1, 8)
-    out = f(x, edge_index, edge_attr, condition)
+    out = f(x, edge_index, edge_attr, condition)  # its first layer split equals the concatenation
     assert out.shape == (4, 8)
     alone = f.node_mlp(torch.cat([x[2:], condition[2:], torch.zeros(2, 8)], dim=-1))
     torch.testing.assert_close(out[2:], alone)

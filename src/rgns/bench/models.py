@@ -71,10 +71,12 @@ def train_step(model, state: State, edge_index: torch.Tensor, directions: int) -
     model.zero_grad(set_to_none=True)
     graph = (state.particle_type, edge_index)
     history = state.velocity_history
-    loss = ((model.next_velocity(state.position, history, *graph) - history[:, -1]) / model.acc_std_noisy).pow(2).mean()
-    if directions == 2:
-        oldest = model.oldest_velocity(state.position, history, *graph)
-        loss = loss + ((oldest - history[:, 0]) / model.acc_std_noisy).pow(2).mean()
+    if directions == 2:  # as the training module does: both predictions in one call
+        newest, oldest = model.both_velocities(state.position, history, history, *graph)
+        loss = ((oldest - history[:, 0]) / model.acc_std_noisy).pow(2).mean()
+    else:
+        newest, loss = model.next_velocity(state.position, history, *graph), 0.0
+    loss = loss + ((newest - history[:, -1]) / model.acc_std_noisy).pow(2).mean()
     loss.backward()
 
 

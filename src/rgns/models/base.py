@@ -112,6 +112,13 @@ class Simulator(nn.Module):
         """Predict ``v^{t-k+1} [N, D]`` from ``p^t [N, D]`` and ``V^{t+1} [N, k, D]`` on the radius graph of ``p^t``."""
         raise NotImplementedError(f"{type(self).__name__} simulates forward in time only")
 
+    def both_velocities(self, position: Tensor, forward_history: Tensor, inverse_history: Tensor,
+                        particle_type: Tensor, edge_index: Tensor, batch: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(next_velocity(.., V^t ..), oldest_velocity(.., V^{t+1} ..))`` on one graph: the two
+        predictions of a bidirectional training step. Models whose directions share work override it."""
+        return (self.next_velocity(position, forward_history, particle_type, edge_index, batch),
+                self.oldest_velocity(position, inverse_history, particle_type, edge_index, batch))
+
     # ---- the physical loops -------------------------------------------------------------------
 
     def graph(self, position: Tensor, batch: Tensor | None = None) -> Tensor:

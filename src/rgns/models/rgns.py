@@ -83,6 +83,15 @@ class RGNS(Simulator):
         latent = self.processor.inverse(self.encode(velocity_history), edge_index, edge_attr, condition)
         return self.decode(latent)
 
+    def both_velocities(self, position: Tensor, forward_history: Tensor, inverse_history: Tensor,
+                        particle_type: Tensor, edge_index: Tensor, batch: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Both directions of a training step on one graph, sharing the conditions (the edge
+        encoder runs once for the two)."""
+        edge_attr, condition = self.conditions(position, particle_type, edge_index)
+        forward = self.processor(self.encode(forward_history), edge_index, edge_attr, condition)
+        inverse = self.processor.inverse(self.encode(inverse_history), edge_index, edge_attr, condition)
+        return self.decode(forward)[:, -1], self.decode(inverse)[:, 0]  # newest slot, oldest slot
+
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
         return self.forward_history(position, velocity_history, particle_type, edge_index)[:, -1]  # newest slot

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+from torch.nn import functional as F
 from torch_geometric.nn import MessagePassing
 
 from rgns.nn.mlp import mlp
@@ -17,7 +18,11 @@ class InteractionNetwork(MessagePassing):
         \mathbf{n}_i' &= \mathbf{n}_i + f^n\big(\mathbf{n}_i, \textstyle\sum_{j \in \mathcal{N}(i)}
         f^e(\mathbf{e}_{ij}, \mathbf{n}_i, \mathbf{n}_j)\big)
 
-    where :math:`f^e` and :math:`f^n` are MLPs whose outputs are layer-normalised.
+    where :math:`f^e` and :math:`f^n` are MLPs whose outputs are layer-normalised. The first
+    layer of :math:`f^e`, linear in :math:`[\mathbf{e}_{ij}, \mathbf{n}_i, \mathbf{n}_j]`, is
+    evaluated as :math:`W_e \mathbf{e}_{ij} + b + (W_r \mathbf{n})_i + (W_s \mathbf{n})_j`,
+    the node terms on the nodes before they are gathered to the edges (the same function as
+    the concatenation, with a third of its per-edge work).
 
     Args:
         channels (int): width of the node and edge latents.
@@ -31,17 +36,24 @@ class InteractionNetwork(MessagePassing):
 
     def __init__(self, channels: int, hidden_layers: int = 2):
         super().__init__(aggr="sum")
+        if hidden_layers < 1:
+            raise ValueError(f"the edge MLP needs a hidden layer, got hidden_layers={hidden_layers}")
+        self.channels = channels
         self.edge_mlp = mlp(3 * channels, channels, channels, hidden_layers)
         self.node_mlp = mlp(2 * channels, channels, channels, hidden_layers)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> tuple[Tensor, Tensor]:
-        message = self.edge_updater(edge_index, x=x, edge_attr=edge_attr)  # [E, C]
+        first = self.edge_mlp[0]
+        edge_term = F.linear(edge_attr, first.weight[:, : self.channels], first.bias)  # [E, C]
+        node_weight = first.weight[:, self.channels:]  # [C, 2C]: receiver, sender
+        receiver, sender = F.linear(x, torch.cat(node_weight.chunk(2, dim=1))).chunk(2, dim=1)  # [N, C] x 2
+        message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, C]
         aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, C]
         x_new = x + self.node_mlp(torch.cat([x, aggregated], dim=-1))
         return x_new, edge_attr + message
 
-    def edge_update(self, x_i: Tensor, x_j: Tensor, edge_attr: Tensor) -> Tensor:
-        return self.edge_mlp(torch.cat([edge_attr, x_i, x_j], dim=-1))
+    def edge_update(self, receiver_i: Tensor, sender_j: Tensor, edge_term: Tensor) -> Tensor:
+        return self.edge_mlp[1:]((edge_term + receiver_i).add_(sender_j))
 
     def message(self, message: Tensor) -> Tensor:
         return message

@@ -15,7 +15,7 @@ def mlp(in_channels: int, hidden_channels: int, out_channels: int, hidden_layers
     layers: list[nn.Module] = []
     width = in_channels
     for _ in range(hidden_layers):
-        layers += [nn.Linear(width, hidden_channels), nn.ReLU()]
+        layers += [nn.Linear(width, hidden_channels), nn.ReLU(inplace=True)]
         width = hidden_channels
     layers.append(nn.Linear(width, out_channels))
     if layer_norm:

@@ -4,20 +4,22 @@ Each of the M layers is a RevNet additive coupling over the two halves of the no
 
     n_1' = n_1 + f(n_2 | graph),    n_2' = n_2 + g(n_1' | graph),
 
-inverted exactly by subtraction in the opposite order. The coupling, its inverse and the
-memory-saving backward (inputs freed in the forward pass, recomputed from the outputs in the
-backward pass) are ``torch_geometric.nn.GroupAddRev`` with two groups; this module only supplies
-the message-passing functions f and g and the conditions they read.
+inverted exactly by subtraction in the opposite order. The coupling and its inverse are
+``torch_geometric.nn.GroupAddRev`` with two groups; this module supplies the message-passing
+functions f and g and the conditions they read, and gives GroupAddRev a cheaper memory-saving
+backward (:class:`ReversibleBlock`).
 
 Conditions never change inside a step, so the inverse exists: the edge latent (``[E, C]``, the
-encoded edge features, split by GroupAddRev into ``e_1`` for f and ``e_2`` for g as in the
-paper's Eq. 5) and the node conditions (``[N, C_cond]``, given whole to f and g; their width must
-differ from C, or GroupAddRev would split them too).
+encoded edge features, split into ``e_1`` for f and ``e_2`` for g as in the paper's Eq. 5) and
+the node conditions (``[N, C_cond]``, given whole to f and g; their width must differ from C, or
+GroupAddRev would split them too). Both directions of a training step read the same edge
+latent, so it is computed once for the two (``RGNS.both_velocities``).
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 from torch_geometric.nn import GroupAddRev, MessagePassing
 
 from rgns.nn.mlp import last_linear, mlp
@@ -35,6 +37,12 @@ class Coupling(MessagePassing):
     ``zero_init`` its output layer starts at zero, so the coupling starts as the identity map
     (for R-GNS: constant-velocity extrapolation).
 
+    The first layer of :math:`f^e` is linear in the concatenation
+    :math:`[\mathbf{e}_{ij}, \mathbf{h}_i, \mathbf{h}_j]`, so it is evaluated as
+    :math:`W_e \mathbf{e}_{ij} + b + (W_r \mathbf{h})_i + (W_s \mathbf{h})_j`, the node terms on
+    the nodes before they are gathered to the edges: the same function as the concatenation,
+    with a third of its per-edge work.
+
     Args:
         channels (int): width :math:`H` of the half latent (and of the edge latent it reads).
         condition_channels (int): width of the node conditions.
@@ -51,11 +59,13 @@ class Coupling(MessagePassing):
     def __init__(self, channels: int, condition_channels: int, hidden_channels: int | None = None,
                  hidden_layers: int = 2, zero_init: bool = True):
         super().__init__(aggr="sum")
-        hidden_channels = hidden_channels or channels
+        if hidden_layers < 1:
+            raise ValueError(f"the edge MLP needs a hidden layer, got hidden_layers={hidden_layers}")
+        self.channels = channels
         self.zero_init = zero_init
-        self.edge_mlp = mlp(3 * channels, hidden_channels, channels, hidden_layers)
-        self.node_mlp = mlp(2 * channels + condition_channels, hidden_channels, channels, hidden_layers,
-                            layer_norm=False)
+        self.edge_mlp = mlp(3 * channels, hidden_channels or channels, channels, hidden_layers)
+        self.node_mlp = mlp(2 * channels + condition_channels, hidden_channels or channels, channels,
+                            hidden_layers, layer_norm=False)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -68,20 +78,128 @@ class Coupling(MessagePassing):
             nn.init.zeros_(last_linear(self.node_mlp).bias)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
-        message = self.edge_updater(edge_index, x=x, edge_attr=edge_attr)  # [E, H]
+        first = self.edge_mlp[0]
+        edge_term = F.linear(edge_attr, first.weight[:, : self.channels], first.bias)  # [E, H_hidden]
+        node_weight = first.weight[:, self.channels:]  # [H_hidden, 2H]: receiver, sender
+        receiver, sender = F.linear(x, torch.cat(node_weight.chunk(2, dim=1))).chunk(2, dim=1)  # [N, H_hidden] x 2
+        message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, H]
         aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, H]
         return self.node_mlp(torch.cat([x, condition, aggregated], dim=-1))
 
-    def edge_update(self, x_i: Tensor, x_j: Tensor, edge_attr: Tensor) -> Tensor:
-        return self.edge_mlp(torch.cat([edge_attr, x_i, x_j], dim=-1))
+    def edge_update(self, receiver_i: Tensor, sender_j: Tensor, edge_term: Tensor) -> Tensor:
+        return self.edge_mlp[1:]((edge_term + receiver_i).add_(sender_j))
 
     def message(self, message: Tensor) -> Tensor:
         return message
 
 
+class ReversibleBlock(GroupAddRev):
+    r"""A two-group :class:`torch_geometric.nn.GroupAddRev` whose memory-saving backward
+    reconstructs each half and recomputes the function that produced it in one pass.
+
+    GroupAddRev's own backward (``InvertibleFunction``) first runs the whole inverse to recover
+    the input, then the whole forward again to rebuild the graph it differentiates: every
+    coupling function is evaluated three times per training step (forward, inverse,
+    recomputation). Here the backward walks the couplings in reverse order and evaluates each
+    one once, with gradients enabled: its output both restores the half it was added to
+    (Gomez et al. 2017, RevNet) and is differentiated. The forward and inverse maps are
+    GroupAddRev's ``_forward`` and ``_inverse``; the input is freed in the forward pass and
+    restored in the backward pass, as with GroupAddRev.
+
+    Arguments are shared out as GroupAddRev does: tensors as wide as the latent are split in
+    halves (the first to f, the second to g), anything else goes whole to both.
+    """
+
+    def __init__(self, convs: nn.ModuleList):
+        super().__init__(convs)
+        if self.num_groups != 2:
+            raise ValueError(f"ReversibleBlock couples two halves, got {self.num_groups} groups")
+
+    def _split(self, arg, channels: int) -> bool:
+        """Whether GroupAddRev's ``_chunk`` splits ``arg`` between the groups."""
+        return isinstance(arg, Tensor) and arg.dim() > 0 and arg.size(self.split_dim) == channels
+
+    def _fn_apply(self, args, fn, fn_inverse):
+        if self.disable:
+            return fn(*args)
+        parameters = tuple(p for p in self.parameters() if p.requires_grad)
+        return _FusedReversible.apply(self, fn == self._inverse, len(args), *args, *parameters)
+
+
+class _FusedReversible(torch.autograd.Function):
+    """Autograd of :class:`ReversibleBlock`: frees the input, keeps the output, and in the backward
+    pass rebuilds the input coupling by coupling while differentiating each coupling once."""
+
+    @staticmethod
+    def forward(ctx, block: ReversibleBlock, inverse: bool, num_args: int, *tensors):
+        args = tensors[:num_args]
+        with torch.no_grad():
+            detached = [a.detach() if isinstance(a, Tensor) else a for a in args]
+            output = (block._inverse if inverse else block._forward)(*detached)
+        # free the input (an intermediate latent of the stack); the backward pass restores it
+        args[0].untyped_storage().resize_(0)
+        ctx.block, ctx.inverse, ctx.args, ctx.output = block, inverse, args, output
+        ctx.needs = [isinstance(a, Tensor) and a.requires_grad for a in args]
+        return output
+
+    @staticmethod
+    def backward(ctx, grad_output: Tensor):
+        block, args, output = ctx.block, ctx.args, ctx.output
+        if output.untyped_storage().size() == 0:
+            raise RuntimeError("ReversibleBlock: its output was freed before its backward pass "
+                               "(a second backward through a memory-saving block is not supported)")
+        channels = output.size(block.split_dim)
+        halves = list(torch.chunk(output, 2, dim=block.split_dim))  # walked back to the input
+        grads = list(torch.chunk(grad_output, 2, dim=block.split_dim))
+        extra, needs = args[1:], ctx.needs[1:]
+        split = [block._split(a, channels) for a in extra]
+        # each group's share of the extra arguments as leaves of its own, so its gradients are its own
+        leaves = [[chunks[group].detach().requires_grad_(need) if isinstance(chunks[group], Tensor) else chunks[group]
+                   for chunks, need in zip((block._chunk(a, channels) for a in extra), needs)]
+                  for group in range(2)]
+        leaf_grads = [[None] * len(extra) for _ in range(2)]
+        param_grads = [[] for _ in range(2)]
+        params = [[p for p in conv.parameters() if p.requires_grad] for conv in block.convs]
+        # the couplings in the order the pass applied them: (target half, source half, group, sign)
+        steps = [(1, 0, 1, -1.0), (0, 1, 0, -1.0)] if ctx.inverse else [(0, 1, 0, 1.0), (1, 0, 1, 1.0)]
+        for target, source, group, sign in reversed(steps):
+            with torch.enable_grad():
+                source_leaf = halves[source].detach().requires_grad_()
+                out = block.convs[group](source_leaf, *leaves[group])
+            with torch.no_grad():
+                halves[target] = halves[target] - sign * out  # the half before this coupling
+            wanted = [i for i, need in enumerate(needs) if need]
+            got = torch.autograd.grad(out, [source_leaf] + [leaves[group][i] for i in wanted] + params[group],
+                                      grad_outputs=sign * grads[target], allow_unused=True)
+            grads[source] = grads[source] + got[0]
+            for i, grad in zip(wanted, got[1 : 1 + len(wanted)]):
+                leaf_grads[group][i] = grad
+            param_grads[group] = got[1 + len(wanted):]
+        with torch.no_grad():
+            args[0].set_(torch.cat(halves, dim=block.split_dim))  # the previous block reads it in its backward
+            output.untyped_storage().resize_(0)  # done with it
+        arg_grads = [torch.cat(grads, dim=block.split_dim)]
+        for index, (arg, is_split, need) in enumerate(zip(extra, split, needs)):
+            if not need:
+                arg_grads.append(None)
+                continue
+            parts = [_zero_if_none(leaf_grads[g][index], leaves[g][index]) for g in range(2)]
+            if is_split:
+                arg_grads.append(torch.cat(parts, dim=block.split_dim))
+            else:
+                arg_grads.append(parts[0] + parts[1])
+        flat_params = [_zero_if_none(g, p) for group in range(2) for g, p in zip(param_grads[group], params[group])]
+        return (None, None, None, *arg_grads, *flat_params)
+
+
+def _zero_if_none(grad: Tensor | None, like: Tensor) -> Tensor:
+    return torch.zeros_like(like) if grad is None else grad
+
+
 class RRMP(nn.Module):
     r"""Residual Reversible Message Passing: ``layers`` two-group
-    :class:`torch_geometric.nn.GroupAddRev` blocks over :class:`Coupling` functions.
+    :class:`torch_geometric.nn.GroupAddRev` blocks (:class:`ReversibleBlock`) over
+    :class:`Coupling` functions.
 
     ``forward`` maps the latent of frame t to that of t+1, ``inverse`` maps it back; both are
     exact up to float rounding. With ``memory_saving`` (the default) and gradients enabled, each
@@ -100,8 +218,8 @@ class RRMP(nn.Module):
         hidden_channels (int, optional): MLP hidden width. (default: :math:`C/2`)
         hidden_layers (int, optional): hidden layers of each MLP. (default: :obj:`2`)
         edges (str, optional): ``"fixed"`` or ``"updated"``. (default: ``"fixed"``)
-        memory_saving (bool, optional): use GroupAddRev's memory-saving backward when gradients
-            are enabled. (default: :obj:`True`)
+        memory_saving (bool, optional): memory-saving backward when gradients are enabled.
+            (default: :obj:`True`)
         zero_init (bool, optional): start every block as the identity. (default: :obj:`True`)
 
     Shapes:
@@ -124,7 +242,7 @@ class RRMP(nn.Module):
         hidden_channels = hidden_channels or half
         self.memory_saving = memory_saving
         self.blocks = nn.ModuleList(
-            GroupAddRev(nn.ModuleList([
+            ReversibleBlock(nn.ModuleList([
                 Coupling(half, condition_channels, hidden_channels, hidden_layers, zero_init)  # f, then g
                 for _ in range(2)
             ]))

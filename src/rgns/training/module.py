@@ -61,24 +61,32 @@ class SimulatorModule(L.LightningModule):
         self.loss = instantiate(loss)
 
     # -- one step, both directions ------------------------------------------------------------
-    def _direction(self, batch, direction: str) -> dict[str, torch.Tensor]:
+    def _direction(self, batch, direction: str, predicted: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """The loss terms of one direction (its prediction made here unless given)."""
         moving = batch.particle_type != KINEMATIC
-        args = (batch.pos, batch.particle_type, batch.edge_index, batch.batch)
+        graph = (batch.particle_type, batch.edge_index, batch.batch)
         if direction == "forward":
             reference, target = batch.forward_input[:, -1].clone(), batch.forward_target  # v^t, v^{t+1}
-            predicted = self.model.next_velocity(batch.pos, batch.forward_input, *args[1:])
+            if predicted is None:
+                predicted = self.model.next_velocity(batch.pos, batch.forward_input, *graph)
         else:
             reference, target = batch.inverse_input[:, 0].clone(), batch.inverse_target  # v^{t-k+2}, v^{t-k+1}
-            predicted = self.model.oldest_velocity(batch.pos, batch.inverse_input, *args[1:])
+            if predicted is None:
+                predicted = self.model.oldest_velocity(batch.pos, batch.inverse_input, *graph)
         scale = self.model.acc_std_noisy
         change, target_change = (predicted - reference) / scale, (target - reference) / scale
         return self.loss(change[moving], target_change[moving], batch.batch[moving])
 
     def _losses(self, batch) -> dict[str, torch.Tensor]:
-        terms = {f"forward_{key}": value for key, value in self._direction(batch, "forward").items()}
+        if self.train_inverse:  # both predictions in one call, so a model can share work between them
+            forward, inverse = self.model.both_velocities(batch.pos, batch.forward_input, batch.inverse_input,
+                                                          batch.particle_type, batch.edge_index, batch.batch)
+        else:
+            forward = inverse = None
+        terms = {f"forward_{key}": value for key, value in self._direction(batch, "forward", forward).items()}
         loss = terms["forward_loss"]
         if self.train_inverse:
-            terms.update({f"inverse_{key}": value for key, value in self._direction(batch, "inverse").items()})
+            terms.update({f"inverse_{key}": value for key, value in self._direction(batch, "inverse", inverse).items()})
             loss = loss + self.hparams.inverse_weight * terms["inverse_loss"]
         terms["loss"] = loss
         return terms
