@@ -146,3 +146,24 @@ def test_coupling_reads_neighbours_and_conditions():
     torch.testing.assert_close(out[2:], alone)
     message = f.edge_mlp(torch.cat([edge_attr[0], x[1], x[0]]))
     torch.testing.assert_close(out[1], f.node_mlp(torch.cat([x[1], condition[1], message])))
+
+
+def test_memory_saving_evaluates_each_coupling_twice_per_training_pass():
+    """Forward without gradients, then one evaluation with gradients in the backward pass that both
+    rebuilds the input and differentiates (GroupAddRev's own backward evaluates a third time)."""
+    position, edge_index, generator = random_graph(60, 2, seed=11)
+    rrmp = make_rrmp(16, 3, 20, "fixed", seed=5)
+    perturb(rrmp, 0.1, generator)
+    calls = []
+    for block in rrmp.blocks:
+        for conv in block.convs:
+            conv.register_forward_hook(lambda module, args, out: calls.append(module))
+    couplings = [conv for block in rrmp.blocks for conv in block.convs]
+    edge_attr = torch.randn(edge_index.size(1), 16, generator=generator)
+    condition = torch.randn(60, 20, generator=generator)
+    for direction in (rrmp.forward, rrmp.inverse):
+        calls.clear()
+        x = torch.randn(60, 16, generator=generator, requires_grad=True)
+        direction(x * 1.0, edge_index, edge_attr, condition).pow(2).sum().backward()
+        assert x.grad is not None and x.grad.abs().max() > 0
+        assert all(sum(c is conv for c in calls) == 2 for conv in couplings), [sum(c is conv for c in calls) for conv in couplings]
