@@ -2,6 +2,7 @@
 resume after a kill, and a non-finite loss. Each runs train.py as a user would."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -62,6 +63,19 @@ def test_loss_sweep_writes_one_run_per_design(dataset, tmp_path):
         names.append(torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["hyper_parameters"]["loss"]["name"])
     assert sorted(names) == ["DL1", "DL2", "DL3", "DL4"]
     assert "train/forward_mmd" in scalar_tags(runs[0]) and "train/forward_cosine" in scalar_tags(runs[1])
+
+
+def test_default_data_is_generated_on_first_use(tmp_path):
+    """`python train.py` on a fresh clone: the DataModule makes the default dataset inside the
+    running Hydra app (the scene config is composed with Hydra too)."""
+    root = tmp_path / "waterdrop"
+    train(tmp_path, f"data.root={root}", "+data.make.num_trajectories=1", "+data.make.num_frames=12",
+          "data.make.workers=1", "trainer=cpu", "trainer.max_steps=2", "trainer.val_check_interval=2",
+          "module.val_rollout_steps=3", "module.val_consistency_steps=2", *TINY)
+    metadata = json.loads((root / "metadata.json").read_text())
+    assert metadata["generator"]["scene"] == "waterdrop" and metadata["sequence_length"] == 11
+    (run,) = (tmp_path / "runs").iterdir()
+    assert (run / "checkpoints" / "last.ckpt").is_file()
 
 
 def test_ablation_sweep_encoder_and_edges(dataset, tmp_path):

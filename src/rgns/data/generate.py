@@ -50,12 +50,24 @@ GENERATOR_VERSION = 1  # bump when the same config and seed would give other dat
 
 
 def compose(overrides: Sequence[str] = (), config_dir: str | Path | None = None):
-    """Compose ``conf/generate.yaml`` with Hydra overrides (no run directory, no logging setup)."""
+    """Compose ``conf/generate.yaml`` with Hydra overrides (no run directory, no logging setup).
+
+    Works inside a running Hydra app too (``train.py`` generating its dataset on first use): the
+    app's global Hydra state is set aside for the composition and put back afterwards."""
     from hydra import compose as hydra_compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
-    with initialize_config_dir(config_dir=str(Path(config_dir or CONF_DIR).resolve()), version_base=None):
-        cfg = hydra_compose("generate", overrides=list(overrides))
+    global_hydra = GlobalHydra.instance()
+    outer = global_hydra.hydra if global_hydra.is_initialized() else None
+    global_hydra.clear()
+    try:
+        with initialize_config_dir(config_dir=str(Path(config_dir or CONF_DIR).resolve()), version_base=None):
+            cfg = hydra_compose("generate", overrides=list(overrides))
+    finally:
+        if outer is not None:
+            global_hydra.clear()
+            global_hydra.initialize(outer)
     OmegaConf.resolve(cfg)
     return cfg
 
