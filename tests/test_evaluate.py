@@ -246,3 +246,24 @@ def test_two_dataset_folders_of_one_name_stay_apart(trained, tmp_path, monkeypat
     results = evaluate(cfg)
     assert sorted(results["datasets"]) == ["data", "data_2"]
     assert {d["root"] for d in results["datasets"].values()} == {str((trained / "data").resolve()), str(twin.resolve())}
+
+
+def test_animation_shows_particles_that_leave_the_box(tmp_path):
+    import imageio.v3 as iio
+
+    from rgns.evaluation.plots import animate
+
+    bounds = [[0.1, 0.9], [0.1, 0.9]]
+    inside = np.full((3, 4, 2), 0.5)
+    escaped = inside.copy()
+    escaped[1:, 0] = [5.0, -3.0]  # far outside from frame 1 on
+    escaped[2, 1] = np.nan
+    animate({"truth": inside, "model": escaped}, ["a", "b", "c"], np.zeros(4, dtype=int), bounds,
+            tmp_path / "a.gif", max_frames=10, fps=5)
+    frames = iio.imread(tmp_path / "a.gif", index=None)
+    assert frames.shape[0] == 3
+
+    def red(frame):  # tab:red is (214, 39, 40)
+        return ((frame[..., 0] > 180) & (frame[..., 1] < 90) & (frame[..., 2] < 90)).sum()
+
+    assert red(frames[0]) == 0 and red(frames[1]) > 0 and red(frames[2]) > red(frames[1]) * 1.5

@@ -134,29 +134,40 @@ def consistency_vs_k(results: dict, path: Path) -> bool:
 
 def animate(panels: dict[str, np.ndarray], titles: list[str], particle_type, bounds, path: Path,
             max_frames: int, fps: float) -> None:
-    """One GIF: a panel per sequence ``[F, N, D]`` (first two dimensions shown), a title per frame."""
+    """One GIF: a panel per sequence ``[F, N, D]`` (first two dimensions shown), a title per frame.
+
+    The box is drawn with a margin of a tenth of its size around it. Particles beyond the margin
+    (or not finite) are drawn in red on the margin's edge, and each panel's title counts them, so
+    a rollout that breaks up does not look emptier than it is."""
     frames = len(titles)
     keep = np.unique(np.linspace(0, frames - 1, min(frames, max_frames)).round().astype(int))
-    colour = np.where(np.asarray(particle_type) == KINEMATIC, "0.55", "tab:blue")
+    fluid = np.where(np.asarray(particle_type) == KINEMATIC, "0.55", "tab:blue")
+    low, high = np.asarray(bounds, dtype=float)[:2, 0], np.asarray(bounds, dtype=float)[:2, 1]
+    margin = 0.1 * (high - low)
+    shown_low, shown_high = low - margin, high + margin
     fig, axes = plt.subplots(1, len(panels), figsize=(2.4 * len(panels), 2.75), squeeze=False)
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.02, top=0.82, wspace=0.06)
-    scatters = []
-    for ax, name in zip(axes[0], panels):
+    scatters, names = [], list(panels)
+    for ax, name in zip(axes[0], names):
         scatters.append(ax.scatter([], [], s=4, c=[]))
-        ax.set_xlim(*bounds[0])
-        ax.set_ylim(*bounds[1])
+        ax.add_patch(plt.Rectangle(low, *(high - low), fill=False, lw=0.6, ec="0.3"))
+        ax.set_xlim(shown_low[0], shown_high[0])
+        ax.set_ylim(shown_low[1], shown_high[1])
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_title(name, fontsize=8)
-    for scatter in scatters:
-        scatter.set_color(colour)
     suptitle = fig.suptitle("", fontsize=9)
     images = []
     for f in keep:
-        for scatter, sequence in zip(scatters, panels.values()):
-            points = np.nan_to_num(np.asarray(sequence[f])[:, :2], nan=-1e3, posinf=-1e3, neginf=-1e3)
+        for ax, name, scatter, sequence in zip(axes[0], names, scatters, panels.values()):
+            points = np.asarray(sequence[f], dtype=float)[:, :2]
+            finite = np.isfinite(points).all(axis=1)
+            outside = ~finite | ((points < shown_low) | (points > shown_high)).any(axis=1)
+            points = np.clip(np.nan_to_num(points, nan=shown_low[0]), shown_low, shown_high)
             scatter.set_offsets(points)
+            scatter.set_color(np.where(outside, "tab:red", fluid))
+            ax.set_title(f"{name} ({outside.sum()} off the chart)" if outside.any() else name, fontsize=8)
         suptitle.set_text(titles[f])
         fig.canvas.draw()
         images.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
