@@ -33,6 +33,8 @@ from typing import Iterable, Iterator, NamedTuple
 import h5py
 import numpy as np
 
+from rgns.physics.materials import GOOP, KINEMATIC, NUM_PARTICLE_TYPES, RIGID, SAND, WATER  # noqa: F401 (re-exported)
+
 SPLITS = ("train", "valid", "test")
 REQUIRED_KEYS = (
     "bounds",
@@ -45,8 +47,6 @@ REQUIRED_KEYS = (
     "acc_mean",
     "acc_std",
 )
-RIGID, KINEMATIC, WATER, SAND, GOOP = 0, 3, 5, 6, 7
-NUM_PARTICLE_TYPES = 9
 
 
 class DatasetError(ValueError):

@@ -21,15 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from rgns.data.contract import KINEMATIC, WATER
-from rgns.physics.geometry import Capsule
-
-
-def lattice(lower: np.ndarray, upper: np.ndarray, spacing: float) -> np.ndarray:
-    """Cell-centred points ``spacing`` apart filling the box [lower, upper]: ``[M, D]``."""
-    counts = np.maximum(np.floor((upper - lower) / spacing + 1e-6).astype(int), 1)
-    index = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, len(counts))
-    offset = lower + 0.5 * ((upper - lower) - counts * spacing)  # centre the block in the box
-    return offset + (index + 0.5) * spacing
+from rgns.physics.geometry import Capsule, lattice  # noqa: F401 (lattice re-exported)
 
 
 class Scene:

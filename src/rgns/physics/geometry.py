@@ -29,3 +29,11 @@ class Capsule:
         a, b = np.asarray(self.start, float), np.asarray(self.end, float)
         count = max(int(np.ceil(np.linalg.norm(b - a) / spacing)), 1) + 1
         return a + np.linspace(0.0, 1.0, count)[:, None] * (b - a)
+
+
+def lattice(lower: np.ndarray, upper: np.ndarray, spacing: float) -> np.ndarray:
+    """Cell-centred points ``spacing`` apart filling the box [lower, upper]: ``[M, D]``."""
+    counts = np.maximum(np.floor((upper - lower) / spacing + 1e-6).astype(int), 1)
+    index = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, len(counts))
+    offset = lower + 0.5 * ((upper - lower) - counts * spacing)  # centre the block in the box
+    return offset + (index + 0.5) * spacing

@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 import taichi as ti
 
-from rgns.data.contract import SAND, WATER
+from rgns.physics.materials import SAND, WATER
 from rgns.physics.geometry import Capsule
 from rgns.physics.runtime import ensure_taichi
 

@@ -39,7 +39,7 @@ from typing import Sequence
 import numpy as np
 import taichi as ti
 
-from rgns.data.contract import WATER
+from rgns.physics.materials import WATER
 from rgns.physics.runtime import ensure_taichi
 
 

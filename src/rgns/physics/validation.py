@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rgns.data.contract import WATER
-from rgns.data.scenes import lattice
+from rgns.physics.materials import WATER
+from rgns.physics.geometry import lattice
 
 G = 9.81
 # Martin & Moyce (1952), Phil. Trans. R. Soc. A 244:312: surge front Z = x/a against T = t sqrt(2g/a)
