@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The main job, from a fresh clone: set up .venv, make the embedded default dataset
-# (datasets/waterdrop_small), train R-GNS, GNS and Sep-GNS on the CPU (experiment=main: a fixed
-# time budget each), evaluate them beside constant-velocity extrapolation, and write the report.
+# (datasets/waterdrop_t32: the waterdrop scene with 32 training trajectories), train R-GNS, GNS
+# and Sep-GNS on the CPU (experiment=main: a fixed budget each), evaluate them beside
+# constant-velocity extrapolation, and write the report.
 # Usage: bash scripts/main.sh [extra train.py overrides, e.g. trainer.max_time=00:00:02:00]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -9,8 +10,8 @@ bash scripts/setup.sh
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONWARNINGS=ignore
 out="outputs/main/$(date +%Y-%m-%d_%H-%M-%S)"
 
-echo "== 1/3 default dataset: datasets/waterdrop_small"
-.venv/bin/python -m rgns.data.generate scene=waterdrop out_dir=datasets/waterdrop_small
+echo "== 1/3 default dataset: datasets/waterdrop_t32 (the waterdrop scene, 32 train trajectories)"
+.venv/bin/python -m rgns.data.generate scene=waterdrop num_trajectories=32 out_dir=datasets/waterdrop_t32
 
 echo "== 2/3 training R-GNS, GNS, Sep-GNS -> $out/train"
 .venv/bin/python train.py -m experiment=main model=rgns,gns,sep_gns hydra.sweep.dir="$out/train" "$@"

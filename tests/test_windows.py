@@ -35,18 +35,21 @@ def test_clean_window_holds_both_directions(split):
     torch.testing.assert_close(sample.inverse_target, velocity[t - K], rtol=0, atol=1e-6)
 
 
-def test_noisy_targets_land_on_true_positions(split):
+def test_noisy_inputs_clean_velocity_targets(split):
     torch.manual_seed(0)
     windows = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2)
     position = torch.from_numpy(split[1].position)
+    velocity = position[1:] - position[:-1]
     t = K + 2
     sample = windows[(20 - K - 1) + 2]  # trajectory 1, t = K + 2
-    assert not torch.allclose(sample.pos, position[t])  # noise is there ...
-    # ... yet the forward target brings p~^t onto p^{t+1}
-    torch.testing.assert_close(sample.pos + sample.forward_target, position[t + 1], rtol=0, atol=1e-6)
-    # and the inverse target brings p~^{t-k+1} onto p^{t-k}
-    oldest = sample.pos - sample.forward_input[:, 1:].sum(1)
-    torch.testing.assert_close(oldest - sample.inverse_target, position[t - K], rtol=0, atol=1e-6)
+    moving = sample.particle_type != KINEMATIC
+    assert not torch.allclose(sample.pos, position[t])  # positions and input velocities are noisy ...
+    assert not torch.allclose(sample.forward_input[:, -1][moving], velocity[t - 1][moving])
+    # ... the targets are the clean velocities (GNS): v^{t+1} forward, v^{t-k+1} inverse
+    torch.testing.assert_close(sample.forward_target, velocity[t], rtol=0, atol=1e-6)
+    torch.testing.assert_close(sample.inverse_target, velocity[t - K], rtol=0, atol=1e-6)
+    # the noise is a random walk from the clean oldest frame: p~^t = p^{t-k} + sum of noisy velocities
+    torch.testing.assert_close(sample.pos, position[t - K] + sample.forward_input.sum(1), rtol=0, atol=1e-6)
     # the two histories are one window shifted by a frame
     torch.testing.assert_close(sample.inverse_input[:, :-1], sample.forward_input[:, 1:])
     kinematic = sample.particle_type == KINEMATIC

@@ -8,9 +8,12 @@ one graph they share, the radius graph of ``p^t``:
 - inverse:  history ``V^{t+1} = (v^{t-k+2} ... v^{t+1})`` -> oldest velocity ``v^{t-k+1}``.
 
 Training noise is GNS's random walk: velocity noise accumulated over the window (zero on
-kinematic particles), the oldest frame ``p^{t-k}`` left clean. Targets are corrected as GNS
-does, so that a perfect prediction lands on the true position: the forward target is
-``p^{t+1} - p~^t``; the inverse target is ``p~^{t-k+1} - p^{t-k}``.
+kinematic particles), the oldest frame ``p^{t-k}`` left clean. As in GNS (Sanchez-Gonzalez et
+al. 2020, DeepMind's ``learned_simulator``), the targets are the clean velocities ``v^{t+1}``
+(forward) and ``v^{t-k+1}`` (inverse): the predicted change cancels the noise of the input
+velocities, not the drift of the noisy positions, which the network cannot observe. (Making
+the step land on the true position instead asks the network to undo the accumulated position
+noise, several times ``noise_std``, from velocities that do not reveal it.)
 """
 from __future__ import annotations
 
@@ -75,8 +78,8 @@ class WindowDataset(Dataset):
             noisy = velocity
         noisy_position = frames[0] + noisy.cumsum(0)  # [k+1, N, D]: p~^{t-k+1} .. p~^{t+1}
         position_t = noisy_position[-2]  # p~^t
-        forward_target = frames[-1] - position_t  # lands on the true p^{t+1}
-        inverse_target = noisy_position[0] - frames[0]  # lands on the true p^{t-k}
+        forward_target = velocity[-1]  # the clean v^{t+1}
+        inverse_target = velocity[0]  # the clean v^{t-k+1}
         return Data(
             pos=position_t,
             edge_index=radius_graph(position_t, self.radius),
