@@ -2,7 +2,10 @@
 
 One process, one thread, one random 1,000-particle 2D scene (about 20 neighbours per particle)
 shared by every model. Reports parameters, inference step (``step`` / ``inverse_step``, radius
-graph included), training step (forward, loss, backward) and peak training memory. Peak memory
+graph included), training step (forward, loss, backward) and peak training memory. The cases
+compared in a ratio are timed in turns (one of each per round, median over the rounds), so the
+ratios hold on a machine whose speed drifts; on the CPU the timing process keeps freed memory
+(:func:`keep_freed_memory`), so page faults do not add noise. Peak memory
 on the CPU is the rise of the resident set over one training step, each model measured in a
 fresh subprocess with glibc's mmap threshold fixed at 64 KiB, so that freed tensors leave the
 resident set at once (on CUDA, ``torch.cuda.max_memory_allocated``).
@@ -15,6 +18,7 @@ train both directions) for reference.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import math
 import os
@@ -55,18 +59,38 @@ def scene(particles: int, neighbours: float, seed: int = 0) -> tuple[dict, State
     return metadata, State(position, velocity, torch.full((particles,), WATER))
 
 
-def median_ms(fn, repeats: int, device: torch.device) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        start = time.perf_counter()
+def keep_freed_memory() -> bool:
+    """Ask glibc to keep freed memory in the process (no trimming, no mmap for large blocks), so
+    that timings measure the kernels rather than the page faults of memory handed back to the
+    system and taken again at every step (which varied inference times by up to 1.8x here).
+    Returns whether it applied (glibc only)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
+    return bool(libc.mallopt(m_mmap_threshold, 1 << 30)) and bool(libc.mallopt(m_trim_threshold, 1 << 30))
+
+
+def interleaved_median_ms(fns: dict, repeats: int, device: torch.device) -> dict[str, float]:
+    """Median wall time of each function, timed in turns after one warm-up each: one call of each
+    per round, the order rotated every round (A B C, B C A, C A B, ...), so that a slow spell of a
+    shared machine, or the cost of following a particular call, falls on every function alike."""
+    for fn in fns.values():
         fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        times.append(1e3 * (time.perf_counter() - start))
-    return statistics.median(times)
+    times = {name: [] for name in fns}
+    names = list(fns)
+    for round_ in range(repeats):
+        for name in names[round_ % len(names):] + names[: round_ % len(names)]:
+            fn = fns[name]
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            start = time.perf_counter()
+            fn()
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            times[name].append(1e3 * (time.perf_counter() - start))
+    return {name: statistics.median(values) for name, values in times.items()}
 
 
 def train_step(model, state: State, edge_index: torch.Tensor, directions: int) -> None:
@@ -127,19 +151,21 @@ def main(argv: list[str]) -> dict:
     parser.add_argument("--json", type=Path, help="write the results here")
     parser.add_argument("--particles", type=int, default=1000)
     parser.add_argument("--neighbours", type=float, default=20.0)
-    parser.add_argument("--repeats", type=int, default=3, help="timed repeats after one warm-up (median)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed rounds after one warm-up (median)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     torch.manual_seed(0)
     device = torch.device(args.device)
+    kept = keep_freed_memory() if device.type == "cpu" else False
     metadata, state = scene(args.particles, args.neighbours)
     state = state.to(device)
     edge_index = GNS(metadata).graph(state.position)
     result = dict(scene=dict(particles=args.particles, edges=edge_index.size(1),
                              neighbours_per_particle=edge_index.size(1) / args.particles,
                              radius=metadata["default_connectivity_radius"], device=str(device),
-                             threads=torch.get_num_threads(), repeats=args.repeats, torch=torch.__version__))
+                             threads=torch.get_num_threads(), repeats=args.repeats, torch=torch.__version__,
+                             freed_memory_kept=kept))
 
     result["params"] = {name: count_parameters(cls(metadata)) for name, cls in
                         (("gns", GNS), ("rgns", RGNS), ("sep_gns", SepGNS))}
@@ -147,19 +173,18 @@ def main(argv: list[str]) -> dict:
     gns, _ = build("gns", metadata, device)
     rgns, _ = build("rgns", metadata, device)
     with torch.no_grad():
-        result["infer_ms"] = dict(
-            gns=median_ms(lambda: gns.step(state), args.repeats, device),
-            rgns_forward=median_ms(lambda: rgns.step(state), args.repeats, device),
-            rgns_inverse=median_ms(lambda: rgns.inverse_step(state), args.repeats, device),
-        )
+        result["infer_ms"] = interleaved_median_ms(dict(
+            gns=lambda: gns.step(state),
+            rgns_forward=lambda: rgns.step(state),
+            rgns_inverse=lambda: rgns.inverse_step(state),
+        ), args.repeats, device)
     del gns, rgns
 
-    result["train_ms"] = {}
-    for case in TRAIN_CASES:
-        model, directions = build(case, metadata, device)
-        result["train_ms"][case] = median_ms(lambda: train_step(model, state, edge_index, directions),
-                                             args.repeats, device)
-        del model
+    models = {case: build(case, metadata, device) for case in TRAIN_CASES}
+    result["train_ms"] = interleaved_median_ms(
+        {case: (lambda m=model, d=directions: train_step(m, state, edge_index, d))
+         for case, (model, directions) in models.items()}, args.repeats, device)
+    del models
 
     context = multiprocessing.get_context("spawn")
     os.environ.setdefault("MALLOC_MMAP_THRESHOLD_", "65536")  # inherited by the spawned processes
@@ -193,7 +218,7 @@ def table(result: dict) -> str:
     s, p, i, t, m = (result[k] for k in ("scene", "params", "infer_ms", "train_ms", "train_peak_mb"))
     rows = [
         f"scene: {s['particles']} particles, {s['edges']} edges ({s['neighbours_per_particle']:.1f} per particle), "
-        f"{s['device']}, {s['threads']} thread(s), median of {s['repeats']}",
+        f"{s['device']}, {s['threads']} thread(s), median of {s['repeats']} rounds, cases timed in turns",
         "",
         "| model | params | inference step (ms) | training step (ms) | peak training memory (MB) |",
         "|---|---|---|---|---|",
