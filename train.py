@@ -20,7 +20,7 @@ def main(cfg: DictConfig) -> float | None:
     trainer = instantiate(
         cfg.trainer,
         logger=instantiate(cfg.logger),
-        callbacks=[instantiate(c) for c in cfg.callbacks.values()],
+        callbacks=[instantiate(c) for c in cfg.callbacks.values() if c is not None],  # `callbacks.X=null` drops one
     )
     with ddp_job():
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.resume)

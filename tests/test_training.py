@@ -115,6 +115,18 @@ def test_ddp_sweep_runs_each_job_once_on_two_ranks(dataset, tmp_path):
         assert (run / "train_ddp_process_1.log").is_file()  # rank 1 ran this job, in this folder
 
 
+def test_last_checkpoint_is_the_latest_state(dataset, tmp_path):
+    """last.ckpt follows training (resume point), best-step*.ckpt the monitored metric: with a
+    metric that can never improve after the first validation, last.ckpt still reaches the end."""
+    run = tmp_path / "run"
+    train(tmp_path, "data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.max_steps=12",
+          "trainer.val_check_interval=4", "+callbacks.checkpoint.mode=max", "callbacks.early_stopping=null",
+          f"hydra.run.dir={run}", *TINY)  # mode=max on a loss: the first validation stays the best
+    assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == 12
+    (best,) = (run / "checkpoints").glob("best-step*.ckpt")
+    assert torch.load(best, weights_only=False)["global_step"] < 12
+
+
 def test_resume_after_kill_continues_from_last_checkpoint(dataset, tmp_path):
     run = tmp_path / "run"
     env = dict(os.environ, OMP_NUM_THREADS="1")
