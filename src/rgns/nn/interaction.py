@@ -3,10 +3,9 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
-from torch.nn import functional as F
 from torch_geometric.nn import MessagePassing
 
-from rgns.nn.mlp import mlp
+from rgns.nn.mlp import edge_input_terms, mlp
 
 
 class InteractionNetwork(MessagePassing):
@@ -36,17 +35,12 @@ class InteractionNetwork(MessagePassing):
 
     def __init__(self, channels: int, hidden_layers: int = 2):
         super().__init__(aggr="sum")
-        if hidden_layers < 1:
-            raise ValueError(f"the edge MLP needs a hidden layer, got hidden_layers={hidden_layers}")
         self.channels = channels
         self.edge_mlp = mlp(3 * channels, channels, channels, hidden_layers)
         self.node_mlp = mlp(2 * channels, channels, channels, hidden_layers)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> tuple[Tensor, Tensor]:
-        first = self.edge_mlp[0]
-        edge_term = F.linear(edge_attr, first.weight[:, : self.channels], first.bias)  # [E, C]
-        node_weight = first.weight[:, self.channels:]  # [C, 2C]: receiver, sender
-        receiver, sender = F.linear(x, torch.cat(node_weight.chunk(2, dim=1))).chunk(2, dim=1)  # [N, C] x 2
+        edge_term, receiver, sender = edge_input_terms(self.edge_mlp, self.channels, x, edge_attr)  # [E|N, C]
         message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, C]
         aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, C]
         x_new = x + self.node_mlp(torch.cat([x, aggregated], dim=-1))

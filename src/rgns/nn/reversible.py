@@ -19,10 +19,9 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
-from torch.nn import functional as F
 from torch_geometric.nn import GroupAddRev, MessagePassing
 
-from rgns.nn.mlp import last_linear, mlp
+from rgns.nn.mlp import edge_input_terms, last_linear, mlp
 
 
 class Coupling(MessagePassing):
@@ -59,8 +58,6 @@ class Coupling(MessagePassing):
     def __init__(self, channels: int, condition_channels: int, hidden_channels: int | None = None,
                  hidden_layers: int = 2, zero_init: bool = True):
         super().__init__(aggr="sum")
-        if hidden_layers < 1:
-            raise ValueError(f"the edge MLP needs a hidden layer, got hidden_layers={hidden_layers}")
         self.channels = channels
         self.zero_init = zero_init
         self.edge_mlp = mlp(3 * channels, hidden_channels or channels, channels, hidden_layers)
@@ -78,10 +75,7 @@ class Coupling(MessagePassing):
             nn.init.zeros_(last_linear(self.node_mlp).bias)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
-        first = self.edge_mlp[0]
-        edge_term = F.linear(edge_attr, first.weight[:, : self.channels], first.bias)  # [E, H_hidden]
-        node_weight = first.weight[:, self.channels:]  # [H_hidden, 2H]: receiver, sender
-        receiver, sender = F.linear(x, torch.cat(node_weight.chunk(2, dim=1))).chunk(2, dim=1)  # [N, H_hidden] x 2
+        edge_term, receiver, sender = edge_input_terms(self.edge_mlp, self.channels, x, edge_attr)  # [E|N, H_hidden]
         message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, H]
         aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, H]
         return self.node_mlp(torch.cat([x, condition, aggregated], dim=-1))
