@@ -109,10 +109,6 @@ class ReversibleBlock(GroupAddRev):
         if self.num_groups != 2:
             raise ValueError(f"ReversibleBlock couples two halves, got {self.num_groups} groups")
 
-    def _split(self, arg, channels: int) -> bool:
-        """Whether GroupAddRev's ``_chunk`` splits ``arg`` between the groups."""
-        return isinstance(arg, Tensor) and arg.dim() > 0 and arg.size(self.split_dim) == channels
-
     def _fn_apply(self, args, fn, fn_inverse):
         if self.disable:
             return fn(*args)
@@ -146,11 +142,13 @@ class _FusedReversible(torch.autograd.Function):
         halves = list(torch.chunk(output, 2, dim=block.split_dim))  # walked back to the input
         grads = list(torch.chunk(grad_output, 2, dim=block.split_dim))
         extra, needs = args[1:], ctx.needs[1:]
-        split = [block._split(a, channels) for a in extra]
+        chunked = [block._chunk(a, channels) for a in extra]  # GroupAddRev's own sharing-out
+        split = [chunks[0] is not a for chunks, a in zip(chunked, extra)]  # halves, or whole to both
         # each group's share of the extra arguments as leaves of its own, so its gradients are its own
         leaves = [[chunks[group].detach().requires_grad_(need) if isinstance(chunks[group], Tensor) else chunks[group]
-                   for chunks, need in zip((block._chunk(a, channels) for a in extra), needs)]
+                   for chunks, need in zip(chunked, needs)]
                   for group in range(2)]
+        wanted = [i for i, need in enumerate(needs) if need]
         leaf_grads = [[None] * len(extra) for _ in range(2)]
         param_grads = [[] for _ in range(2)]
         params = [[p for p in conv.parameters() if p.requires_grad] for conv in block.convs]
@@ -162,7 +160,6 @@ class _FusedReversible(torch.autograd.Function):
                 out = block.convs[group](source_leaf, *leaves[group])
             with torch.no_grad():
                 halves[target] = halves[target] - sign * out  # the half before this coupling
-            wanted = [i for i, need in enumerate(needs) if need]
             got = torch.autograd.grad(out, [source_leaf] + [leaves[group][i] for i in wanted] + params[group],
                                       grad_outputs=sign * grads[target], allow_unused=True)
             grads[source] = grads[source] + got[0]
@@ -173,7 +170,7 @@ class _FusedReversible(torch.autograd.Function):
             args[0].set_(torch.cat(halves, dim=block.split_dim))  # the previous block reads it in its backward
             output.untyped_storage().resize_(0)  # done with it
         arg_grads = [torch.cat(grads, dim=block.split_dim)]
-        for index, (arg, is_split, need) in enumerate(zip(extra, split, needs)):
+        for index, (is_split, need) in enumerate(zip(split, needs)):
             if not need:
                 arg_grads.append(None)
                 continue
