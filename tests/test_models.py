@@ -161,7 +161,7 @@ def test_unmasked_history_round_trip_is_exact_up_to_the_ilp_projection(dim, seed
         assert (moved - projected).abs().max() > 1e-2  # the projection is the whole gap, and it is not zero
 
 
-@pytest.mark.parametrize("options", [dict(), dict(encoder="mlp"), dict(edges="updated")])
+@pytest.mark.parametrize("options", [dict(), dict(encoder="mlp"), dict(edges="updated"), dict(node_norm=False)])
 def test_rgns_memory_saving_gradients_equal_plain_gradients(options):
     torch.manual_seed(0)
     model = RGNS(metadata(3), latent=16, layers=3, **options)

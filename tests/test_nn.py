@@ -76,9 +76,10 @@ def test_rrmp_inverse_recovers_latent_at_ten_layers(dim, channels, nodes, edges)
                                         condition), x, rtol=0, atol=1e-5)
 
 
-def test_rrmp_starts_as_the_identity():
+@pytest.mark.parametrize("node_norm", [True, False])
+def test_rrmp_starts_as_the_identity(node_norm):
     position, edge_index, generator = random_graph(50, 2, seed=1)
-    rrmp = RRMP(16, 3, 20)
+    rrmp = RRMP(16, 3, 20, node_norm=node_norm)
     x = torch.randn(50, 16, generator=generator)
     with torch.no_grad():
         y = rrmp(x, edge_index, torch.randn(edge_index.size(1), 16), torch.randn(50, 20))
@@ -167,3 +168,23 @@ def test_memory_saving_evaluates_each_coupling_twice_per_training_pass():
         direction(x * 1.0, edge_index, edge_attr, condition).pow(2).sum().backward()
         assert x.grad is not None and x.grad.abs().max() > 0
         assert all(sum(c is conv for c in calls) == 2 for conv in couplings), [sum(c is conv for c in calls) for conv in couplings]
+
+
+def test_coupling_increment_is_bounded_by_its_layer_norm():
+    """With ``node_norm`` no input, however far from the training data, makes a coupling add
+    more than its LayerNorm allows (|gain| sqrt(H) + |bias| per node); without it the
+    increment grows with the input."""
+    torch.manual_seed(0)
+    position, edge_index, generator = random_graph(60, 2, seed=4)
+    x, condition = torch.randn(60, 8, generator=generator), torch.randn(60, 5, generator=generator)
+    edge_attr = torch.randn(edge_index.size(1), 8, generator=generator)
+    normed, plain = Coupling(8, 5, zero_init=False), Coupling(8, 5, zero_init=False, node_norm=False)
+    norm = normed.node_mlp[-1]
+    with torch.no_grad():
+        norm.weight.normal_(generator=generator)
+        norm.bias.normal_(generator=generator)
+        bound = norm.weight.abs().max() * 8**0.5 + norm.bias.norm()
+        for scale in (1.0, 1e3, 1e6):
+            assert normed(scale * x, edge_index, edge_attr, condition).norm(dim=-1).max() <= bound * (1 + 1e-5)
+        small, large = (plain(scale * x, edge_index, edge_attr, condition).norm(dim=-1).max() for scale in (1.0, 1e3))
+    assert large > 100 * small

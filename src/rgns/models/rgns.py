@@ -34,13 +34,17 @@ class RGNS(Simulator):
         memory_saving (bool, optional): GroupAddRev's memory-saving backward in training.
             (default: :obj:`True`)
         zero_init (bool, optional): start at the identity latent map. (default: :obj:`True`)
+        node_norm (bool, optional): end each coupling in a LayerNorm, which bounds the change of
+            velocity per step (:class:`~rgns.nn.reversible.Coupling`); ``False`` drops it.
+            (default: :obj:`True`)
     """
 
     bidirectional = True
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
-                 edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, embedding: int = 16):
+                 edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, node_norm: bool = True,
+                 embedding: int = 16):
         super().__init__(metadata, history, noise_std, embedding)
         node_in = history * self.dim
         if encoder == "ilp":
@@ -52,7 +56,7 @@ class RGNS(Simulator):
         # edge latent: geometry of the edge and the conditions of both ends, encoded once per step
         self.edge_encoder = mlp(self.dim + 1 + 2 * self.condition_channels, latent, latent, hidden_layers)
         self.processor = RRMP(latent, layers, self.condition_channels, hidden, hidden_layers, edges,
-                              memory_saving, zero_init)
+                              memory_saving, zero_init, node_norm)
 
     def conditions(self, position: Tensor, particle_type: Tensor, edge_index: Tensor) -> tuple[Tensor, Tensor]:
         """The fixed conditions of a step: edge latents ``[E, C]`` and node conditions ``[N, 2D + embedding]``."""

@@ -32,9 +32,12 @@ class Coupling(MessagePassing):
         f(\mathbf{h})_i = f^n\big(\mathbf{h}_i, \mathbf{c}_i, \textstyle\sum_{j \in \mathcal{N}(i)}
         f^e(\mathbf{e}_{ij}, \mathbf{h}_i, \mathbf{h}_j)\big)
 
-    :math:`f^e` is layer-normalised like GNS's edge MLP; :math:`f^n` is not, and with
-    ``zero_init`` its output layer starts at zero, so the coupling starts as the identity map
-    (for R-GNS: constant-velocity extrapolation).
+    :math:`f^e` and :math:`f^n` end in a LayerNorm, like GNS's MLPs: whatever the input, the
+    increment a coupling adds is bounded by its LayerNorm's gain and bias (for R-GNS: so is the
+    change of velocity in one step, as GNS's acceleration is bounded by its layer-normalised
+    latents). With ``zero_init`` the gain and bias of :math:`f^n`'s LayerNorm start at zero
+    (without ``node_norm``, its output layer), so the coupling starts as the identity map (for
+    R-GNS: constant-velocity extrapolation).
 
     The first layer of :math:`f^e` is linear in the concatenation
     :math:`[\mathbf{e}_{ij}, \mathbf{h}_i, \mathbf{h}_j]`, so it is evaluated as
@@ -47,7 +50,9 @@ class Coupling(MessagePassing):
         condition_channels (int): width of the node conditions.
         hidden_channels (int, optional): width of the MLPs' hidden layers. (default: ``channels``)
         hidden_layers (int, optional): hidden layers of each MLP. (default: :obj:`2`)
-        zero_init (bool, optional): start :math:`f^n`'s output layer at zero. (default: :obj:`True`)
+        zero_init (bool, optional): start :math:`f^n`'s output at zero. (default: :obj:`True`)
+        node_norm (bool, optional): end :math:`f^n` in a LayerNorm (bounded increments).
+            (default: :obj:`True`)
 
     Shapes:
         - **input:** half latent :math:`(|\mathcal{V}|, H)`, edge indices :math:`(2, |\mathcal{E}|)`,
@@ -56,13 +61,13 @@ class Coupling(MessagePassing):
     """
 
     def __init__(self, channels: int, condition_channels: int, hidden_channels: int | None = None,
-                 hidden_layers: int = 2, zero_init: bool = True):
+                 hidden_layers: int = 2, zero_init: bool = True, node_norm: bool = True):
         super().__init__(aggr="sum")
         self.channels = channels
         self.zero_init = zero_init
         self.edge_mlp = mlp(3 * channels, hidden_channels or channels, channels, hidden_layers)
         self.node_mlp = mlp(2 * channels + condition_channels, hidden_channels or channels, channels,
-                            hidden_layers, layer_norm=False)
+                            hidden_layers, layer_norm=node_norm)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -70,9 +75,10 @@ class Coupling(MessagePassing):
         for module in self.modules():
             if isinstance(module, (nn.Linear, nn.LayerNorm)):
                 module.reset_parameters()
-        if self.zero_init:
-            nn.init.zeros_(last_linear(self.node_mlp).weight)
-            nn.init.zeros_(last_linear(self.node_mlp).bias)
+        if self.zero_init:  # the output's last affine map: the LayerNorm's, or the output layer
+            last = self.node_mlp[-1] if isinstance(self.node_mlp[-1], nn.LayerNorm) else last_linear(self.node_mlp)
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
         edge_term, receiver, sender = edge_input_terms(self.edge_mlp, self.channels, x, edge_attr)  # [E|N, H_hidden]
@@ -212,6 +218,8 @@ class RRMP(nn.Module):
         memory_saving (bool, optional): memory-saving backward when gradients are enabled.
             (default: :obj:`True`)
         zero_init (bool, optional): start every block as the identity. (default: :obj:`True`)
+        node_norm (bool, optional): end each coupling in a LayerNorm (see :class:`Coupling`).
+            (default: :obj:`True`)
 
     Shapes:
         - **input:** node latents :math:`(|\mathcal{V}|, C)`, edge indices :math:`(2, |\mathcal{E}|)`,
@@ -220,7 +228,8 @@ class RRMP(nn.Module):
     """
 
     def __init__(self, channels: int, layers: int, condition_channels: int, hidden_channels: int | None = None,
-                 hidden_layers: int = 2, edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True):
+                 hidden_layers: int = 2, edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True,
+                 node_norm: bool = True):
         super().__init__()
         if channels % 2:
             raise ValueError(f"RRMP splits the latent in two halves; channels must be even, got {channels}")
@@ -234,7 +243,7 @@ class RRMP(nn.Module):
         self.memory_saving = memory_saving
         self.blocks = nn.ModuleList(
             ReversibleBlock(nn.ModuleList([
-                Coupling(half, condition_channels, hidden_channels, hidden_layers, zero_init)  # f, then g
+                Coupling(half, condition_channels, hidden_channels, hidden_layers, zero_init, node_norm)  # f, then g
                 for _ in range(2)
             ]))
             for _ in range(layers)
