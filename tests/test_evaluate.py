@@ -197,10 +197,10 @@ def test_evaluate_one_checkpoint_forward_task_only(trained, tmp_path):
     checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=forward", f"output_dir={tmp_path}",
-                                             "task.forward.steps=8", "baselines=null", *FAST[:3]])
+                                             "task.forward.steps=8", "baselines=null", *FAST[:2], "task.efficiency=null"])
     results = evaluate(cfg)
     data = results["datasets"]["data"]
-    assert "inverse" not in data and data["forward"]["settings"]["steps"] == 8
+    assert "inverse" not in data and "efficiency" not in data and data["forward"]["settings"]["steps"] == 8
     assert len(data["forward"]["methods"]) == 1  # no baseline
     report = (tmp_path / "report.md").read_text()
     assert "Inverse inference comparison" not in report and "forward_data.gif" in report

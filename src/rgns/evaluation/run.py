@@ -62,7 +62,7 @@ def evaluate(cfg: DictConfig) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     checkpoints = find_checkpoints(cfg.ckpt_path, cfg.ckpt_paths, cfg.checkpoints_dir, cfg.checkpoint)
     methods = load_checkpoints(checkpoints, cfg.device)
-    tasks = [instantiate(task, _convert_="all") for task in cfg.task.values()]  # plain dicts and lists
+    tasks = [instantiate(task, _convert_="all") for task in cfg.task.values() if task is not None]  # task.X=null drops X
 
     by_root: dict[str, list] = {}
     for method in methods:
