@@ -168,3 +168,18 @@ def test_waterdrop_preset_statistics_are_deepminds(tmp_path):
         ratio = np.asarray(metadata[key]) / reference
         assert ((ratio > 0.5) & (ratio < 2.0)).all(), (key, metadata[key])
     assert metadata["sequence_length"] == 1000 and metadata["num_particles_max"] <= 1100
+
+
+def test_split_sizes_are_settable_and_a_larger_split_extends_a_smaller_one(waterdrop, tmp_path):
+    """Trajectory i of a split is seeded by (seed, split, i): more validation trajectories keep the
+    ones a smaller split had, so results on the smaller one stay comparable."""
+    larger = generate_dataset(tiny_scene(), tmp_path / "larger", splits={"valid": 2, "test": None}, **TINY)
+    with open_split(larger, "valid") as valid, open_split(waterdrop, "valid") as small:
+        assert len(valid) == 2 and len(small) == 1
+        np.testing.assert_array_equal(valid[0].position, small[0].position)
+        first, second = valid[0].position, valid[1].position
+        assert first.shape != second.shape or not np.array_equal(first, second)  # a trajectory of its own
+    assert read_metadata(larger)["generator"]["num_trajectories"] == {"train": 2, "valid": 2, "test": 1}
+    with pytest.raises(ValueError, match="unknown split"):
+        generate_dataset(tiny_scene(), tmp_path / "bad", splits={"validation": 2}, **TINY)
+    assert not (tmp_path / "bad").exists()

@@ -125,12 +125,22 @@ def _load_part(parts: Path, split: str, index: int) -> tuple[np.ndarray, np.ndar
 # ---------------------------------------------------------------- the dataset
 def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories: int | None = None,
                      num_frames: int | None = None, seed: int = 0, workers: int = 2, arch: str = "cpu",
-                     progress: bool = True) -> Path:
-    """Generate (or finish generating) a dataset folder; returns its path. See the module docs."""
+                     progress: bool = True, splits: Mapping[str, int | None] | None = None) -> Path:
+    """Generate (or finish generating) a dataset folder; returns its path. See the module docs.
+
+    ``splits`` sets the trajectories of some splits (e.g. ``{"valid": 8, "test": 8}``; ``None``
+    keeps the scene's count); ``num_trajectories`` is the train split's, as before."""
     cfg = scene_config(scene)
-    splits = {split: int(cfg["splits"][split]) for split in SPLITS}
+    unknown = set(splits or {}) - set(SPLITS)
+    if unknown:
+        raise ValueError(f"splits: unknown split(s) {sorted(unknown)}; the splits are {list(SPLITS)}")
+    counts = {split: int(cfg["splits"][split]) for split in SPLITS}
+    counts.update({split: int(n) for split, n in (splits or {}).items() if n is not None})
     if num_trajectories is not None:
-        splits["train"] = int(num_trajectories)
+        counts["train"] = int(num_trajectories)
+    if any(n < 1 for n in counts.values()):
+        raise ValueError(f"every split needs at least one trajectory, got {counts}")
+    splits = counts
     num_frames = int(num_frames or cfg["num_frames"])
     if num_frames < 3:
         raise ValueError(f"num_frames={num_frames}: need at least 3 (an acceleration)")
@@ -208,7 +218,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
         return Path()
     cfg = compose(argv)
     return generate_dataset(cfg.scene, cfg.out_dir, num_trajectories=cfg.num_trajectories,
-                            num_frames=cfg.num_frames, seed=cfg.seed, workers=cfg.workers, arch=cfg.arch)
+                            num_frames=cfg.num_frames, seed=cfg.seed, workers=cfg.workers, arch=cfg.arch,
+                            splits=dict(cfg.splits))
 
 
 if __name__ == "__main__":
