@@ -172,3 +172,34 @@ def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(dataset, tmp_path):
     assert "non-finite training loss" in failed.stderr
     assert last.read_bytes() == before
     assert torch.load(last, weights_only=False)["global_step"] == 10
+
+
+def test_validation_rollouts_score_the_averaged_weights(dataset, tmp_path):
+    """With an EMA callback the checkpoint holds the averaged weights, and the validation rollout
+    that chooses checkpoints must score those same weights, not the raw ones."""
+    from rgns.data.contract import Split
+    from rgns.training.module import load_simulator
+    from rgns.training.rollouts import forward_rollout
+
+    run = tmp_path / "run"
+    ema = ("+callbacks.ema={_target_: lightning.pytorch.callbacks.WeightAveraging, "
+           "multi_avg_fn: {_target_: torch.optim.swa_utils.get_ema_multi_avg_fn, decay: 0.5}}")
+    train(tmp_path, "data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.max_steps=12",
+          "trainer.val_check_interval=12", "module.optimizer.lr=1e-2", "callbacks.early_stopping=null", ema,
+          f"hydra.run.dir={run}", *TINY)
+    checkpoint = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    assert checkpoint["global_step"] == 12 and "current_model_state" in checkpoint  # averaged and raw kept
+    raw, averaged = checkpoint["current_model_state"], checkpoint["state_dict"]
+    assert max((raw[k] - averaged[k]).abs().max() for k in averaged if k in raw) > 1e-4  # the two differ
+
+    events = EventAccumulator(str(run / "tensorboard"))
+    events.Reload()
+    (logged,) = [e.value for e in events.Scalars("val/rollout_mse") if e.step >= 11]
+    model, info = load_simulator(str(run / "checkpoints" / "last.ckpt"))
+    k, steps = info["hparams"]["history"], info["hparams"]["val_rollout_steps"]
+    with Split(dataset / "valid.h5") as valid:
+        position, particle_type = (torch.from_numpy(a) for a in valid[0])
+    n = min(steps, len(position) - k - 1)
+    with torch.no_grad():
+        mse = (forward_rollout(model, position, particle_type, k, n) - position[k + 1 : k + 1 + n]).pow(2).mean()
+    assert logged == pytest.approx(mse.item(), rel=1e-4)

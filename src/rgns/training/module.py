@@ -104,6 +104,8 @@ class SimulatorModule(L.LightningModule):
         return terms["loss"]
 
     def validation_step(self, batch, batch_idx: int) -> None:
+        if batch_idx == 0:  # here, not at epoch end: callbacks that swap weights in (EMA) have done so
+            self._validation_rollouts()
         with torch.no_grad():
             terms = self._losses(batch)
         if self.model.bidirectional and not self.train_inverse:  # R-GNS†: still measure its inverse
@@ -111,7 +113,12 @@ class SimulatorModule(L.LightningModule):
         self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=batch.num_graphs, sync_dist=True)
 
     # -- rollouts on validation trajectories ----------------------------------------------------
-    def on_validation_epoch_end(self) -> None:
+    @torch.no_grad()
+    def _validation_rollouts(self) -> None:
+        """Rollout and consistency MSE on the validation trajectories, logged for the epoch. Run at
+        the first validation step, inside the window in which weight-averaging callbacks
+        (``lightning.pytorch.callbacks.WeightAveraging``) validate the averaged weights: they swap
+        them back before the module's ``on_validation_epoch_end``."""
         datamodule = getattr(self.trainer, "datamodule", None)
         trajectories = getattr(datamodule, "valid_trajectories", None)
         if trajectories is None or self.trainer.sanity_checking:
@@ -131,9 +138,9 @@ class SimulatorModule(L.LightningModule):
                 _, resimulated = inverse_then_forward(self.model, position, particle_type, k, K)
                 consistency_mse.append((resimulated[-1] - position[k + K]).pow(2).mean())
         if rollout_mse:
-            self.log("val/rollout_mse", torch.stack(rollout_mse).mean(), sync_dist=True)
+            self.log("val/rollout_mse", torch.stack(rollout_mse).mean(), sync_dist=True, batch_size=1)
         if consistency_mse:
-            self.log("val/consistency_mse", torch.stack(consistency_mse).mean(), sync_dist=True)
+            self.log("val/consistency_mse", torch.stack(consistency_mse).mean(), sync_dist=True, batch_size=1)
         if shown is not None:
             self._log_rollout_figure(*shown)
 
