@@ -140,12 +140,11 @@ def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories
         counts["train"] = int(num_trajectories)
     if any(n < 1 for n in counts.values()):
         raise ValueError(f"every split needs at least one trajectory, got {counts}")
-    splits = counts
     num_frames = int(num_frames or cfg["num_frames"])
     if num_frames < 3:
         raise ValueError(f"num_frames={num_frames}: need at least 3 (an acceleration)")
     generator = {"scene": cfg["name"], "params": cfg, "seed": int(seed), "version": _version(),
-                 "num_trajectories": splits, "num_frames": num_frames}
+                 "num_trajectories": counts, "num_frames": num_frames}
 
     out_dir = Path(out_dir)
     parts = out_dir / ".parts"
@@ -165,7 +164,7 @@ def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories
         with atomic_path(plan_path) as tmp:
             tmp.write_text(json.dumps(generator, indent=2, sort_keys=True))
 
-    todo = [(split, i) for split in SPLITS for i in range(splits[split])
+    todo = [(split, i) for split in SPLITS for i in range(counts[split])
             if not (out_dir / f"{split}.h5").is_file() and not _part_path(parts, split, i).is_file()]
     tasks = [(cfg, split, i, int(seed), num_frames, str(parts), arch) for split, i in todo]
     if tasks:
@@ -186,10 +185,10 @@ def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories
     for split in SPLITS:  # assemble each split once all its parts exist
         path = out_dir / f"{split}.h5"
         if not path.is_file():
-            write_split(path, (_load_part(parts, split, i) for i in range(splits[split])))
+            write_split(path, (_load_part(parts, split, i) for i in range(counts[split])))
         with Split(path) as data:
-            if len(data) != splits[split]:
-                raise DatasetError(f"{path}: {len(data)} trajectories, expected {splits[split]}")
+            if len(data) != counts[split]:
+                raise DatasetError(f"{path}: {len(data)} trajectories, expected {counts[split]}")
             num_particles_max = max([num_particles_max] + [shape[1] for shape in data.shapes])
     with Split(out_dir / "train.h5") as train:
         statistics = compute_statistics(train)
