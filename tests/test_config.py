@@ -1,18 +1,17 @@
 """Config tier: every group option composes and instantiates."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import lightning as L
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from rgns import config_dir
 from rgns.data.contract import read_metadata
 from rgns.models import GNS, RGNS, SepGNS
 from rgns.training.losses import LossDesign
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = config_dir()
 
 
 def options(group: str) -> list[str]:

@@ -17,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from PIL import Image
 
+from rgns import config_dir
 from rgns.data.contract import SPLITS, WATER, write_metadata, write_split
 from rgns.evaluation.baselines import ConstantVelocity
 from rgns.evaluation.methods import Method, _disambiguate, describe, find_checkpoints
@@ -79,7 +80,7 @@ def test_labels_follow_the_paper_and_sweeps_stay_apart():
 @pytest.mark.parametrize("task, names", [("forward", ["forward", "efficiency"]), ("inverse", ["inverse", "efficiency"]),
                                          ("all", ["forward", "efficiency", "inverse"])])
 def test_task_configs_compose_and_instantiate(task, names):
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=[f"task={task}", "divergence.energy_factor=7"])
     tasks = [instantiate(c) for c in cfg.task.values()]
     assert [t.name for t in tasks] == names
@@ -195,7 +196,7 @@ def test_evaluate_sweep_writes_report_json_and_charts(trained):
 
 def test_evaluate_one_checkpoint_forward_task_only(trained, tmp_path):
     checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=forward", f"output_dir={tmp_path}",
                                              "task.forward.steps=8", "baselines=null", *FAST[:2], "task.efficiency=null"])
     results = evaluate(cfg)
@@ -209,7 +210,7 @@ def test_evaluate_one_checkpoint_forward_task_only(trained, tmp_path):
 
 def test_evaluate_goal_task_writes_figure_gif_and_matching_table(trained, tmp_path):
     checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=goal", "goal.text=L", "goal.height=0.1",
                                              "goal.steps=3", "task.goal.optimiser=null", "baselines=null",
                                              f"output_dir={tmp_path}", "trajectories=1"])
@@ -240,7 +241,7 @@ def test_two_dataset_folders_of_one_name_stay_apart(trained, tmp_path, monkeypat
     loaded = load_checkpoints([checkpoint], "cpu") + load_checkpoints([checkpoint], "cpu")
     loaded[1].data_root = str(twin)
     monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device: loaded)
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=forward", f"output_dir={tmp_path / 'out'}",
                                              "task.forward.steps=4", "baselines=null", *FAST[:3]])
     results = evaluate(cfg)

@@ -1,6 +1,7 @@
 """Generate a scene's dataset: ``python -m rgns.data.generate scene=NAME out_dir=DIR``.
 
-Command line (Hydra overrides of ``conf/generate.yaml``; nothing is written to the cwd)::
+Command line (Hydra overrides of ``generate.yaml`` in :func:`rgns.config_dir`, the repo's ``conf/``;
+nothing is written to the cwd)::
 
     python -m rgns.data.generate scene=waterdrop out_dir=data/waterdrop \
         [num_trajectories=N] [num_frames=T] [seed=S] [workers=2] [arch=cpu] [scene.splits.valid=4 ...]
@@ -42,15 +43,16 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from rgns import config_dir as package_config_dir
 from rgns.data.contract import SPLITS, DatasetError, Split, atomic_path, write_metadata, write_split
 from rgns.data.stats import compute_statistics
 
-CONF_DIR = Path(__file__).resolve().parents[3] / "conf"  # the repo's conf/ (editable install)
 GENERATOR_VERSION = 1  # bump when the same config and seed would give other data
 
 
 def compose(overrides: Sequence[str] = (), config_dir: str | Path | None = None):
-    """Compose ``conf/generate.yaml`` with Hydra overrides (no run directory, no logging setup).
+    """Compose ``generate.yaml`` from ``config_dir`` (default: the package's, :func:`rgns.config_dir`)
+    with Hydra overrides (no run directory, no logging setup).
 
     Works inside a running Hydra app too (``train.py`` generating its dataset on first use): the
     app's global Hydra state is set aside for the composition and put back afterwards."""
@@ -62,7 +64,8 @@ def compose(overrides: Sequence[str] = (), config_dir: str | Path | None = None)
     outer = global_hydra.hydra if global_hydra.is_initialized() else None
     global_hydra.clear()
     try:
-        with initialize_config_dir(config_dir=str(Path(config_dir or CONF_DIR).resolve()), version_base=None):
+        config_dir = Path(config_dir or package_config_dir()).resolve()
+        with initialize_config_dir(config_dir=str(config_dir), version_base=None):
             cfg = hydra_compose("generate", overrides=list(overrides))
     finally:
         if outer is not None:
@@ -211,7 +214,7 @@ def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories
 def main(argv: Sequence[str] | None = None) -> Path:
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(arg in ("-h", "--help") for arg in argv):
-        scenes = sorted(p.stem for p in (CONF_DIR / "scene").glob("*.yaml"))
+        scenes = sorted(p.stem for p in (package_config_dir() / "scene").glob("*.yaml"))
         print(__doc__)
         print("scenes:", ", ".join(scenes))
         return Path()
