@@ -34,7 +34,7 @@ def waterdrop(tmp_path_factory):
 def test_dataset_follows_the_contract(waterdrop):
     metadata = validate_dataset(waterdrop)
     assert metadata["sequence_length"] == 11 and metadata["dim"] == 2 and metadata["dt"] == 0.0025
-    assert metadata["bounds"] == [[0.1, 0.9], [0.1, 0.9]] and metadata["gravity"] == [0.0, -9.81]
+    assert metadata["bounds"] == [[0.1, 0.5], [0.1, 0.5]] and metadata["gravity"] == [0.0, -9.81]
     assert metadata["generator"]["scene"] == "waterdrop" and metadata["generator"]["seed"] == 3
     assert metadata["generator"]["params"]["spacing"] == 0.0065 and "version" in metadata["generator"]
     with open_split(waterdrop, "train") as train:

@@ -4,8 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rgns.data.contract import KINEMATIC, RIGID, SAND, WATER
-from rgns.data.stats import RunningMoments, compute_statistics
+from rgns.data.contract import KINEMATIC, RIGID, SAND, WATER, open_split, read_metadata
+from rgns.data.generate import generate_dataset
+from rgns.data.stats import RunningMoments, compute_statistics, dataset_regime, regime
 
 
 def random_trajectories(rng: np.random.Generator, dim: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -82,3 +83,29 @@ def test_no_moving_particles_is_an_error():
         compute_statistics([(position, np.full(4, KINEMATIC))])
     with pytest.raises(ValueError, match="no trajectory with moving particles"):
         compute_statistics([])
+
+
+# ---------------------------------------------------------------- the regime
+def test_regime_counts_neighbours_and_the_energy_left():
+    lattice = np.stack(np.meshgrid(np.arange(10), np.arange(10)), -1).reshape(-1, 2) * 0.01  # 100 particles
+    still = np.repeat(lattice[None], 20, axis=0)  # [20, 100, 2], at rest
+    moving = still + np.linspace(0, 1, 20)[:, None, None] ** 0.5  # decelerating drift
+    for trajectory in (still, moving):
+        result = regime(trajectory, np.full(100, WATER), radius=0.0105)
+        # 4 neighbours inside, 3 on edges, 2 at corners: (64*4 + 32*3 + 4*2) / 100
+        assert result["neighbours"] == pytest.approx([3.6] * 10)
+    assert regime(still, np.full(100, WATER), 0.0105)["energy_left"] == 0.0
+    left = regime(moving, np.full(100, WATER), 0.0105)["energy_left"]
+    assert 0 < left < 0.3  # decelerating: the last 10 frames have less energy than the first
+
+
+def test_default_scene_stays_in_waterdrop_regime(tmp_path):
+    """The default scene must form pools that settle, not films one particle thick (mean
+    neighbours ~5-6) or water still sloshing at the end (docs/validation.md)."""
+    folder = generate_dataset("waterdrop", tmp_path / "default", num_trajectories=3, splits={"valid": 1, "test": 1},
+                              workers=1, progress=False)
+    summary = read_metadata(folder)["regime"]
+    assert summary["settled_neighbours_min"] >= 9.0, summary
+    assert summary["energy_left_max"] <= 0.15, summary
+    with open_split(folder, "train") as train:
+        assert dataset_regime(train, 0.015)["settled_neighbours_min"] == summary["settled_neighbours_min"]

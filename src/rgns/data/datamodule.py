@@ -23,6 +23,9 @@ class ParticleDataModule(L.LightningDataModule):
         noise_std: random-walk noise on training windows.
         batch_size: graphs per batch (the paper's is 2).
         num_workers: DataLoader worker processes.
+        lead, horizon: extra frames of each training window before and after it, for training
+            through several steps (``module.pushforward``, ``module.unroll``; see
+            :class:`~rgns.data.windows.WindowDataset`).
     """
 
     def __init__(
@@ -33,12 +36,15 @@ class ParticleDataModule(L.LightningDataModule):
         noise_std: float = 6.7e-4,
         batch_size: int = 2,
         num_workers: int = 0,
+        lead: int = 0,
+        horizon: int = 1,
     ):
         super().__init__()
         self.root = Path(root)
         self.make = make
         self.history, self.noise_std = history, noise_std
         self.batch_size, self.num_workers = batch_size, num_workers
+        self.lead, self.horizon = lead, horizon
         self._metadata: dict | None = None
 
     def prepare_data(self) -> None:
@@ -67,7 +73,8 @@ class ParticleDataModule(L.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit"):
-            self.train_set = WindowDataset(self.split("train"), self.radius, self.history, self.noise_std)
+            self.train_set = WindowDataset(self.split("train"), self.radius, self.history, self.noise_std,
+                                           self.lead, self.horizon)
             self.valid_set = WindowDataset(self.split("valid"), self.radius, self.history, 0.0)
             self.valid_trajectories = TrajectoryDataset(self.split("valid"))
 

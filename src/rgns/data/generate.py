@@ -29,7 +29,9 @@ What it guarantees:
   last, so a folder with ``metadata.json`` is complete. A folder made with other settings is
   never mixed with: generation stops with an error;
 - ``metadata.json`` carries DeepMind's keys (statistics from the train split) plus
-  ``num_particles_max``, ``gravity`` and ``generator`` = {scene, params, seed, version, ...}.
+  ``num_particles_max``, ``gravity``, ``regime`` (:func:`rgns.data.stats.dataset_regime` of the
+  train split: mean neighbours over each trajectory, kinetic energy left at the end) and
+  ``generator`` = {scene, params, seed, version, ...}.
 """
 from __future__ import annotations
 
@@ -45,7 +47,7 @@ import numpy as np
 
 from rgns import config_dir as package_config_dir
 from rgns.data.contract import SPLITS, DatasetError, Split, atomic_path, write_metadata, write_split
-from rgns.data.stats import compute_statistics
+from rgns.data.stats import compute_statistics, dataset_regime
 
 GENERATOR_VERSION = 1  # bump when the same config and seed would give other data
 
@@ -195,6 +197,8 @@ def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories
             num_particles_max = max([num_particles_max] + [shape[1] for shape in data.shapes])
     with Split(out_dir / "train.h5") as train:
         statistics = compute_statistics(train)
+        regime = dataset_regime(train, float(cfg["connectivity_radius"]))
+    regime.pop("trajectories")  # the summary: `python -m rgns.data.stats DIR` prints it per trajectory
     metadata = {
         "bounds": cfg["bounds"],
         "sequence_length": num_frames - 1,
@@ -204,6 +208,7 @@ def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories
         **statistics,
         "num_particles_max": num_particles_max,
         "gravity": cfg["gravity"],
+        "regime": regime,
         "generator": generator,
     }
     write_metadata(out_dir, metadata)

@@ -55,3 +55,75 @@ def compute_statistics(trajectories: Iterable[Trajectory | tuple]) -> dict[str, 
         "acc_mean": acceleration.mean.tolist(),
         "acc_std": acceleration.std.tolist(),
     }
+
+
+# ---------------------------------------------------------------- the regime of a dataset
+def regime(position: np.ndarray, particle_type: np.ndarray, radius: float, points: int = 10) -> dict:
+    """Is the fluid coherent, and does it settle? For one trajectory ``[T, N, D]``:
+
+    - ``neighbours``: mean number of other moving particles within ``radius`` of a moving
+      particle, at ``points`` frames spread evenly over the trajectory (WaterDrop's pools hold
+      ~9-12 once settled; films one particle thick ~5-6);
+    - ``energy_left``: mean kinetic energy of the last 10 frames over its peak (per-frame
+      velocities: the fraction of the motion still there at the end).
+    """
+    from scipy.spatial import cKDTree
+
+    moving = np.asarray(position, dtype=np.float64)[:, np.asarray(particle_type) != KINEMATIC]  # [T, M, D]
+    frames = np.linspace(0, len(moving) - 1, points).round().astype(int)
+    neighbours = []
+    for frame in frames:
+        pairs = cKDTree(moving[frame]).query_pairs(radius, output_type="ndarray")
+        neighbours.append(2 * len(pairs) / max(moving.shape[1], 1))
+    energy = (np.diff(moving, axis=0) ** 2).sum(-1).mean(-1)  # [T - 1]
+    peak = float(energy.max())
+    return {"frames": frames.tolist(), "neighbours": neighbours,
+            "energy_left": float(energy[-10:].mean() / peak) if peak > 0 else 0.0}
+
+
+def dataset_regime(trajectories: Iterable[Trajectory | tuple], radius: float, points: int = 10) -> dict:
+    """:func:`regime` over a split: per trajectory, and the summary figures ``neighbours_mean``
+    (at each of the ``points`` frames, over trajectories), ``settled_neighbours_min`` (the least
+    mean neighbours of any trajectory over its second half) and ``energy_left_max``."""
+    per_trajectory = [regime(p, t, radius, points) for p, t in trajectories]
+    if not per_trajectory:
+        raise ValueError("no trajectories")
+    neighbours = np.array([r["neighbours"] for r in per_trajectory])  # [n, points]
+    return {
+        "neighbours_mean": neighbours.mean(0).round(2).tolist(),
+        "settled_neighbours_min": float(neighbours[:, points // 2:].mean(1).min().round(2)),
+        "energy_left_max": float(max(r["energy_left"] for r in per_trajectory)),
+        "trajectories": per_trajectory,
+    }
+
+
+def main(argv=None) -> dict:
+    """``python -m rgns.data.stats DATASET_DIR [--split train] [--points 10]``: print the regime."""
+    import argparse
+    import json
+
+    from rgns.data.contract import open_split, read_metadata
+
+    parser = argparse.ArgumentParser(prog="python -m rgns.data.stats", description=main.__doc__)
+    parser.add_argument("root", help="a dataset folder (metadata.json + {train,valid,test}.h5)")
+    parser.add_argument("--split", default="train")
+    parser.add_argument("--points", type=int, default=10, help="frames per trajectory at which neighbours are counted")
+    parser.add_argument("--json", action="store_true", help="print the whole result as JSON")
+    args = parser.parse_args(argv)
+    radius = float(read_metadata(args.root)["default_connectivity_radius"])
+    with open_split(args.root, args.split) as data:
+        result = dataset_regime(data, radius, args.points)
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return result
+    print(f"{args.root} [{args.split}], {len(result['trajectories'])} trajectories, radius {radius:g}")
+    print("mean neighbours at frames", result["trajectories"][0]["frames"], "(of the first; the same fractions for all):")
+    print("  " + ", ".join(f"{n:.1f}" for n in result["neighbours_mean"]))
+    print(f"least mean neighbours of a trajectory over its second half: {result['settled_neighbours_min']:.1f}")
+    energy = [r["energy_left"] for r in result["trajectories"]]
+    print(f"kinetic energy of the last 10 frames over its peak: {100 * min(energy):.1f}% .. {100 * max(energy):.1f}%")
+    return result
+
+
+if __name__ == "__main__":
+    main()

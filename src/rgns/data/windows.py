@@ -42,18 +42,29 @@ class WindowDataset(Dataset):
     ``forward_input [N, k, D]``, ``forward_target [N, D]``,
     ``inverse_input [N, k, D]``, ``inverse_target [N, D]``.
 
+    With ``lead > 0`` or ``horizon > 1`` (training through several steps: pushforward, unrolled
+    losses) it also holds ``frames [N, lead + k + 1 + horizon, D]``, the clean positions
+    ``p^{t-k-lead} .. p^{t+horizon}``, and ``t`` runs only where they all exist.
+
     Args:
         split: an open :class:`~rgns.data.contract.Split`.
         radius: connectivity radius.
         history: k, the number of velocities in a history.
         noise_std: GNS random-walk noise std (0 for validation).
+        lead: frames before ``p^{t-k}`` a pushforward may start from.
+        horizon: frames after ``p^t`` an unrolled loss may reach (1: the next frame only).
     """
 
-    def __init__(self, split: Split, radius: float, history: int = 5, noise_std: float = 0.0):
+    def __init__(self, split: Split, radius: float, history: int = 5, noise_std: float = 0.0,
+                 lead: int = 0, horizon: int = 1):
+        if lead < 0 or horizon < 1:
+            raise ValueError(f"lead={lead} must be >= 0 and horizon={horizon} >= 1")
         self.split, self.radius, self.history, self.noise_std = split, radius, history, noise_std
+        self.lead, self.horizon = lead, horizon
         self.window = history + 2
-        # window (s, t) covers frames t-k .. t+1; t runs over k .. T-2
-        self.index = [(s, t) for s, (frames, _, _) in enumerate(split.shapes) for t in range(history, frames - 1)]
+        # window (s, t) covers frames t-k-lead .. t+horizon; t runs over k+lead .. T-1-horizon
+        self.index = [(s, t) for s, (frames, _, _) in enumerate(split.shapes)
+                      for t in range(history + lead, frames - horizon)]
         self._cache: tuple[int, torch.Tensor, torch.Tensor] | None = None
 
     def __len__(self) -> int:
@@ -80,7 +91,11 @@ class WindowDataset(Dataset):
         position_t = noisy_position[-2]  # p~^t
         forward_target = velocity[-1]  # the clean v^{t+1}
         inverse_target = velocity[0]  # the clean v^{t-k+1}
+        extra = {}
+        if self.lead > 0 or self.horizon > 1:
+            extra["frames"] = position[t - k - self.lead : t + 1 + self.horizon].transpose(0, 1).contiguous()
         return Data(
+            **extra,
             pos=position_t,
             edge_index=radius_graph(position_t, self.radius),
             particle_type=particle_type,

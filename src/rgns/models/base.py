@@ -62,13 +62,22 @@ class Simulator(nn.Module):
         noise_std (float, optional): training noise, added in quadrature to the stds as in GNS.
             (default: :obj:`6.7e-4`)
         embedding (int, optional): width of the particle-type embedding. (default: :obj:`16`)
+        hard_walls (bool, optional): a hard wall in :meth:`step` and :meth:`inverse_step`: a
+            particle the network would move out of the box ``bounds`` stops at the wall (its
+            position is clamped into the box and the step's velocity is the displacement that got
+            it there, so ``p^{t+1} = p^t + v^{t+1}`` still holds and the normal velocity into the
+            wall is zero). Training targets are untouched; only rollouts see the wall. Near a wall
+            it breaks the exact inverse of the network for the particles it stops.
+            (default: :obj:`False`)
     """
 
     bidirectional: bool = False
 
-    def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, embedding: int = 16):
+    def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, embedding: int = 16,
+                 hard_walls: bool = False):
         super().__init__()
         self.history = history
+        self.hard_walls = bool(hard_walls)
         self.dim = int(metadata["dim"])
         self.radius = float(metadata["default_connectivity_radius"])
 
@@ -121,6 +130,10 @@ class Simulator(nn.Module):
 
     # ---- the physical loops -------------------------------------------------------------------
 
+    def stop_at_walls(self, position: Tensor, velocity: Tensor) -> Tensor:
+        """The velocity that takes ``position`` to ``position + velocity`` clamped into the box. ``[N, D]``"""
+        return (position + velocity).clamp(self.bounds[:, 0], self.bounds[:, 1]) - position
+
     def graph(self, position: Tensor, batch: Tensor | None = None) -> Tensor:
         """Radius graph of ``position`` (scipy on the CPU), on the model's device.  ``[2, E]``"""
         return batched_radius_graph(position, self.radius, batch).to(position.device)
@@ -134,6 +147,8 @@ class Simulator(nn.Module):
         position, history = state.position, state.velocity_history
         edge_index = self.graph(position, state.batch)
         velocity = self.next_velocity(position, history, state.particle_type, edge_index, state.batch)  # [N, D]
+        if self.hard_walls:
+            velocity = self.stop_at_walls(position, velocity)
         kinematic = (state.particle_type == KINEMATIC).unsqueeze(-1)
         imposed = torch.zeros_like(position) if kinematic_position is None else kinematic_position - position
         velocity = torch.where(kinematic, imposed, velocity)
@@ -152,6 +167,9 @@ class Simulator(nn.Module):
         position = state.position - history[:, -1]  # p^t, exact
         edge_index = self.graph(position, state.batch)
         velocity = self.oldest_velocity(position, history, state.particle_type, edge_index, state.batch)  # [N, D]
+        if self.hard_walls:  # the frame it fixes, p^{t-k} = p^{t-k+1} - v^{t-k+1}, stays in the box
+            earliest = state.position - history.sum(dim=1)  # p^{t-k+1}
+            velocity = -self.stop_at_walls(earliest, -velocity)
         kinematic = (state.particle_type == KINEMATIC).unsqueeze(-1)
         if kinematic_position is None:
             imposed = torch.zeros_like(position)
@@ -188,7 +206,7 @@ class Simulator(nn.Module):
         return torch.stack(positions)
 
     def extra_repr(self) -> str:
-        return f"dim={self.dim}, history={self.history}, radius={self.radius:g}"
+        return f"dim={self.dim}, history={self.history}, radius={self.radius:g}, hard_walls={self.hard_walls}"
 
 
 def count_parameters(module: nn.Module) -> int:

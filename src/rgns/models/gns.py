@@ -20,15 +20,15 @@ class GNS(Simulator):
       ``v^{t+1} = v^t + a^{t+1}``.
 
     Args:
-        metadata, history, noise_std, embedding: see :class:`~rgns.models.base.Simulator`.
+        metadata, history, noise_std, embedding, hard_walls: see :class:`~rgns.models.base.Simulator`.
         latent (int, optional): latent width. (default: :obj:`128`)
         layers (int, optional): message-passing steps. (default: :obj:`10`)
         hidden_layers (int, optional): hidden layers per MLP. (default: :obj:`2`)
     """
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
-                 layers: int = 10, hidden_layers: int = 2, embedding: int = 16):
-        super().__init__(metadata, history, noise_std, embedding)
+                 layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False):
+        super().__init__(metadata, history, noise_std, embedding, hard_walls)
         node_in = history * self.dim + self.condition_channels
         self.node_encoder = mlp(node_in, latent, latent, hidden_layers)
         self.edge_encoder = mlp(self.dim + 1, latent, latent, hidden_layers)

@@ -23,7 +23,7 @@ class RGNS(Simulator):
     R-GNS† (forward-only training) is this model trained with the forward loss alone.
 
     Args:
-        metadata, history, noise_std, embedding: see :class:`~rgns.models.base.Simulator`.
+        metadata, history, noise_std, embedding, hard_walls: see :class:`~rgns.models.base.Simulator`.
         latent (int, optional): latent width, split in two halves by RRMP. (default: :obj:`128`)
         layers (int, optional): reversible blocks. (default: :obj:`10`)
         hidden (int, optional): MLP hidden width in the couplings. (default: ``latent // 2``)
@@ -44,8 +44,8 @@ class RGNS(Simulator):
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
                  edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, node_norm: bool = True,
-                 embedding: int = 16):
-        super().__init__(metadata, history, noise_std, embedding)
+                 embedding: int = 16, hard_walls: bool = False):
+        super().__init__(metadata, history, noise_std, embedding, hard_walls)
         node_in = history * self.dim
         if encoder == "ilp":
             self.projection = ILP(node_in, latent)

@@ -18,14 +18,14 @@ class SepGNS(Simulator):
     ``(-v^{t+1}, ..., -v^{t-k+2})`` (its "history", normalised with ``-vel_mean``) on the same
     graph of ``p^t`` as the forward one, and its "next velocity" is ``-v^{t-k+1}``.
 
-    Args: as :class:`GNS`; both networks get the same sizes.
+    Args: as :class:`GNS`; both networks get the same sizes (``hard_walls`` acts on the steps of this model).
     """
 
     bidirectional = True
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
-                 layers: int = 10, hidden_layers: int = 2, embedding: int = 16):
-        super().__init__(metadata, history, noise_std, embedding)
+                 layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False):
+        super().__init__(metadata, history, noise_std, embedding, hard_walls)
         del self.type_embedding  # each network owns its own
         reversed_metadata = copy.deepcopy(metadata)
         reversed_metadata["vel_mean"] = [-m for m in metadata["vel_mean"]]

@@ -12,6 +12,9 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from rgns.data.contract import KINEMATIC
+from rgns.data.windows import random_walk_noise
+from rgns.models import State
+from rgns.training.recipes import Pushforward, Unroll
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
 
 matplotlib.use("Agg")
@@ -31,6 +34,10 @@ class SimulatorModule(L.LightningModule):
         val_rollout_steps: length of the forward rollout validated each epoch.
         val_consistency_steps: K of the inverse-then-forward consistency validated each epoch.
         val_trajectories: how many validation trajectories those rollouts use.
+        pushforward: ``{steps, unrolls, probs}`` of a :class:`~rgns.training.recipes.Pushforward`
+            schedule (forward loss only); needs ``data.lead`` >= its largest unroll.
+        unroll: ``{steps, lengths}`` of an :class:`~rgns.training.recipes.Unroll` schedule: the
+            forward loss through that many steps; needs ``data.horizon`` >= its longest.
     """
 
     def __init__(
@@ -46,6 +53,8 @@ class SimulatorModule(L.LightningModule):
         val_rollout_steps: int = 20,
         val_consistency_steps: int = 10,
         val_trajectories: int = 2,
+        pushforward: dict | None = None,
+        unroll: dict | None = None,
     ):
         super().__init__()
         # Hydra hands over DictConfigs: store plain values, so checkpoints load with weights_only
@@ -59,6 +68,8 @@ class SimulatorModule(L.LightningModule):
         self.model = instantiate(model, metadata=metadata, history=history, noise_std=noise_std)
         self.train_inverse = bool(train_inverse) and self.model.bidirectional
         self.loss = instantiate(loss)
+        self.pushforward = Pushforward(**pushforward) if pushforward else None
+        self.unroll = Unroll(**unroll) if unroll else None
 
     # -- one step, both directions ------------------------------------------------------------
     def _direction(self, batch, direction: str, predicted: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -77,7 +88,52 @@ class SimulatorModule(L.LightningModule):
         change, target_change = (predicted - reference) / scale, (target - reference) / scale
         return self.loss(change[moving], target_change[moving], batch.batch[moving])
 
+    def _multistep_forward(self, batch, pushed: int, length: int) -> dict[str, torch.Tensor]:
+        """The forward loss terms after ``pushed`` steps without gradients, through ``length``
+        steps with them (:mod:`rgns.training.recipes`), averaged over the ``length`` steps."""
+        k = self.hparams.history
+        frames = getattr(batch, "frames", None)  # [N, lead + k + 1 + horizon, D], p^t at index lead + k
+        lead = int(getattr(self.trainer.datamodule, "lead", 0))
+        needed = f"data.lead >= {pushed} and data.horizon >= {length}"
+        if frames is None or lead < pushed or frames.shape[1] - lead - k - 1 < length:
+            raise ValueError(f"pushforward/unroll need windows with more frames: set {needed}")
+        moving = batch.particle_type != KINEMATIC
+        start = lead + k - pushed  # index of the frame the state starts at
+        window = frames[:, start - k : start + 1].transpose(0, 1)  # [k + 1, N, D], clean
+        velocity = window[1:] - window[:-1]  # [k, N, D]
+        if self.hparams.noise_std > 0:
+            velocity = velocity + random_walk_noise(tuple(velocity.shape), self.hparams.noise_std, moving.cpu()).to(velocity)
+        noisy_last = window[0] + velocity.sum(0)  # the start frame, noisy
+        offset = noisy_last - window[-1]  # the targets move with the start frame's noise (as in GNS)
+        state = State(noisy_last, velocity.transpose(0, 1).contiguous(), batch.particle_type, batch.batch)
+        with torch.no_grad():
+            for j in range(pushed):
+                state = self.model.step(state, kinematic_position=frames[:, start + j + 1])
+        scale = self.model.acc_std_noisy
+        totals: dict[str, torch.Tensor] = {}
+        for j in range(length):
+            previous, reference = state.position, state.velocity_history[:, -1]  # p^{t+j}, v^{t+j} (predicted)
+            target = frames[:, lead + k + j + 1] + offset  # the true p^{t+j+1}, noise-shifted
+            state = self.model.step(state, kinematic_position=frames[:, lead + k + j + 1])
+            change = (state.velocity_history[:, -1] - reference) / scale
+            # change - target_change is the error of the predicted position, in acceleration units;
+            # gradients reach every step through the positions and histories of the earlier ones
+            target_change = (target - previous - reference) / scale
+            for key, value in self.loss(change[moving], target_change[moving], batch.batch[moving]).items():
+                totals[key] = totals.get(key, 0) + value / length
+        return totals
+
     def _losses(self, batch) -> dict[str, torch.Tensor]:
+        pushed = self.pushforward.draw(self.global_step) if self.pushforward is not None and self.training else 0
+        length = self.unroll.length(self.global_step) if self.unroll is not None and self.training else 1
+        if pushed or length > 1:
+            terms = {f"forward_{key}": value for key, value in self._multistep_forward(batch, pushed, length).items()}
+            loss = terms["forward_loss"]
+            if self.train_inverse:
+                terms.update({f"inverse_{key}": value for key, value in self._direction(batch, "inverse").items()})
+                loss = loss + self.hparams.inverse_weight * terms["inverse_loss"]
+            terms["loss"] = loss
+            return terms
         if self.train_inverse:  # both predictions in one call, so a model can share work between them
             forward, inverse = self.model.both_velocities(batch.pos, batch.forward_input, batch.inverse_input,
                                                           batch.particle_type, batch.edge_index, batch.batch)
