@@ -1,5 +1,6 @@
 """Evaluation: the constant-velocity baseline, rollout stability, labels of a sweep, and
-``evaluate.py`` on tiny trained checkpoints (files written, report numbers = results.json)."""
+``evaluate.py`` on tiny trained checkpoints (files written, report numbers = results.json).
+The other yardsticks (ballistic baseline, solver references) are in test_references.py."""
 from __future__ import annotations
 
 import json
@@ -159,8 +160,10 @@ def test_evaluate_sweep_writes_report_json_and_charts(trained):
 
     results = json.loads((out / "results.json").read_text())
     data = results["datasets"]["data"]
-    assert set(data["forward"]["methods"]) == {"R-GNS 16x2", "GNS 16x2", "Const. velocity"}
-    assert set(data["inverse"]["methods"]) == {"R-GNS 16x2", "Const. velocity"}  # GNS is forward only
+    assert set(data["forward"]["methods"]) == {"R-GNS 16x2", "GNS 16x2", "Const. velocity", "Ballistic + walls"}
+    assert set(data["inverse"]["methods"]) == {"R-GNS 16x2", "Const. velocity", "Ballistic + walls"}  # GNS: forward only
+    # a dataset without a generator (as converted ones): no solver to re-run, and the report says why
+    assert data["references"]["methods"] == {} and "no generator" in data["references"]["note"]
     forward, inverse, cost, summary = (data[k]["methods"] if k != "summary" else data[k]
                                        for k in ("forward", "inverse", "efficiency", "summary"))
     steps = FRAMES - 1 - 5
@@ -170,7 +173,9 @@ def test_evaluate_sweep_writes_report_json_and_charts(trained):
     assert cost["R-GNS 16x2"]["parameters"] < cost["GNS 16x2"]["parameters"]  # half of a GNS, as in the paper
     assert all(row["forward_ms_per_step"] > 0 for row in cost.values())
 
-    tables = markdown_tables((out / "report.md").read_text())
+    report = (out / "report.md").read_text()
+    assert f"data: {data['references']['note']}" in report
+    tables = markdown_tables(report)
     K = data["inverse"]["settings"]["table_horizon"]
     assert_cells(tables["Rollout MSE (1e-3) in the forward process"], "data",
                  {m: r["rollout_mse"] for m, r in forward.items()}, 1e3)

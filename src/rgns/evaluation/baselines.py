@@ -1,7 +1,8 @@
 """Baselines that need no training, behind the :class:`~rgns.models.Simulator` interface so
-that every evaluation task runs them like a trained model."""
+that every evaluation task runs them like a trained model. Each names itself (``label``)."""
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from rgns.models import Simulator
@@ -16,6 +17,7 @@ class ConstantVelocity(Simulator):
     """
 
     bidirectional = True
+    label = "Const. velocity"
 
     def __init__(self, metadata: dict, history: int = 5):
         super().__init__(metadata, history)
@@ -28,3 +30,50 @@ class ConstantVelocity(Simulator):
     def oldest_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                         edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
         return velocity_history[:, 0]  # [N, D]
+
+
+class Ballistic(ConstantVelocity):
+    """Free flight under gravity inside the box's walls, in both directions of time.
+
+    Forward: ``v = v^t + g``, the new position ``p^t + v`` is clamped into ``bounds``, and the
+    velocity returned is the clamped position minus ``p^t`` (so ``p^{t+1} = p^t + v^{t+1}`` holds
+    and the velocity component into a wall is zeroed): a particle resting on the floor stays at
+    rest. Backward, the mirror image: from ``p^{t-k+1}`` and its velocity ``v^{t-k+2}``,
+    ``v = v^{t-k+2} - g``, the earlier position ``p^{t-k+1} - v`` is clamped into the box, and
+    ``v^{t-k+1}`` is ``p^{t-k+1}`` minus it.
+
+    ``g`` is in position units per frame squared: ``metadata["gravity"]`` (m/s^2) times
+    ``metadata["dt"]`` squared. Datasets converted from DeepMind's files carry no ``gravity``;
+    there the dataset's mean acceleration ``acc_mean`` (already per frame squared) stands in for
+    it: the mean over every particle and frame, so contacts with the walls make it somewhat
+    smaller than gravity.
+    """
+
+    label = "Ballistic + walls"
+
+    def __init__(self, metadata: dict, history: int = 5):
+        super().__init__(metadata, history)
+        if metadata.get("gravity") is not None:
+            gravity = torch.as_tensor(metadata["gravity"], dtype=torch.float32) * float(metadata["dt"]) ** 2
+        else:
+            gravity = torch.as_tensor(metadata["acc_mean"], dtype=torch.float32)
+        self.register_buffer("gravity", gravity)  # [D], per frame^2
+
+    def walls(self, position: Tensor, velocity: Tensor) -> Tensor:
+        """The velocity that takes ``position`` to ``position + velocity`` clamped into the box:
+        ``velocity`` itself where no wall is hit (exactly, not re-derived from float32 positions).  ``[N, D]``"""
+        target = position + velocity
+        inside = torch.minimum(torch.maximum(target, self.bounds[:, 0]), self.bounds[:, 1])
+        return torch.where(inside == target, velocity, inside - position)
+
+    def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                      edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
+        velocity = velocity_history[:, -1] + self.gravity  # [N, D], dt = 1
+        return self.walls(position, velocity)
+
+    def oldest_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
+                        edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
+        # position is p^t and velocity_history V^{t+1}: the oldest known frame is p^{t-k+1}
+        oldest = position - velocity_history[:, :-1].sum(dim=1)  # [N, D]
+        velocity = velocity_history[:, 0] - self.gravity
+        return -self.walls(oldest, -velocity)  # back in time: p^{t-k} = p^{t-k+1} - v^{t-k+1}

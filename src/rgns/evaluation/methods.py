@@ -1,6 +1,10 @@
 """The methods an evaluation compares: trained checkpoints (found one by one or under a
 folder, e.g. a Hydra multirun) and training-free baselines, each with a label like the paper's
-("R-GNS 128x10", "R-GNS† 128x10", "GNS 128x10", "Sep-GNS 128x10")."""
+("R-GNS 128x10", "R-GNS† 128x10", "GNS 128x10", "Sep-GNS 128x10"; a baseline's own ``label``).
+
+What the tasks use of a method: ``label``, ``trained``, ``bidirectional``, ``parameters``,
+``model`` (a :class:`~rgns.models.Simulator`) and :meth:`Method.forward_rollout`. The solver
+references (:mod:`rgns.evaluation.references`) offer the same, with ``model = None``."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -8,12 +12,14 @@ from pathlib import Path
 
 import yaml
 from hydra.utils import instantiate
+from torch import Tensor
 
 from rgns.models import Simulator, count_parameters
 from rgns.training.module import load_simulator
+from rgns.training.rollouts import forward_rollout
 
-# display names of the simulators, by class name (labels only: models are built by _target_)
-DISPLAY_NAMES = {"GNS": "GNS", "RGNS": "R-GNS", "SepGNS": "Sep-GNS", "ConstantVelocity": "Const. velocity"}
+# display names of the trained simulators, by class name (labels only: models are built by _target_)
+DISPLAY_NAMES = {"GNS": "GNS", "RGNS": "R-GNS", "SepGNS": "Sep-GNS"}
 
 
 @dataclass
@@ -31,6 +37,16 @@ class Method:
     @property
     def trained(self) -> bool:
         return self.source != "baseline"
+
+    @property
+    def bidirectional(self) -> bool:
+        return self.model.bidirectional
+
+    def forward_rollout(self, dataset, index: int, steps: int) -> Tensor:
+        """Frames ``t0 + 1 .. t0 + steps`` of test trajectory ``index``, rolled out from its true
+        state at ``t0 = dataset.start``.  ``[steps, N, D]``"""
+        position, particle_type = dataset.trajectories[index]
+        return forward_rollout(self.model, position, particle_type, dataset.start, steps)
 
 
 def find_checkpoints(ckpt_path: str | None = None, ckpt_paths=(), checkpoints_dir: str | None = None,
@@ -104,9 +120,10 @@ def load_checkpoints(paths: list[Path], device: str = "cpu") -> list[Method]:
 
 
 def build_baselines(configs: dict | None, metadata: dict, history: int, device: str = "cpu") -> list[Method]:
-    """``{name: {_target_: ..., ...}}`` -> training-free methods for one dataset, labelled by class."""
+    """``{name: {_target_: ..., ...}}`` -> training-free methods for one dataset, each labelled by its
+    class's ``label`` (else its class name)."""
     methods = []
     for config in (configs or {}).values():
         model = instantiate(config, metadata=metadata, history=history).to(device).eval()
-        methods.append(Method(DISPLAY_NAMES.get(type(model).__name__, type(model).__name__), model, None, "baseline"))
+        methods.append(Method(getattr(model, "label", type(model).__name__), model, None, "baseline"))
     return methods

@@ -1,7 +1,9 @@
 """Charts (PNG) and animations (GIF) of an evaluation:
 
 - ``accuracy_vs_speed.png``: rollout MSE against forward ms per step, one point per method and
-  dataset, marker area by parameter count;
+  dataset, marker area by parameter count; the solver references (the dataset's own solver
+  re-run, at its ms per frame) as stars joined into the classical front, their predictability
+  floor as a dotted line;
 - ``error_vs_step.png``: MSE against rollout step, where each forward rollout fails marked;
 - ``consistency_vs_k.png``: consistency and inverse MSE against the inverse steps K;
 - ``forward_<dataset>.gif``: ground truth against each method's forward rollout;
@@ -57,15 +59,34 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
     fig, ax = plt.subplots(figsize=(7, 5))
     datasets = list(results["datasets"])
     for name, label, row in points:
+        solvers = results["datasets"][name].get("references", {}).get("methods", {})
+        legend = f"{label} ({name})" if len(datasets) > 1 else label
+        if label in solvers:  # a classical solver: a star, annotated without parameters
+            ax.scatter(row["forward_ms_per_step"], row["rollout_mse"], s=220, color=colours[label], marker="*",
+                       edgecolors="black", linewidths=0.6, label=f"{legend} (solver, ms / frame)", zorder=3)
+            ax.annotate(label, (row["forward_ms_per_step"], row["rollout_mse"]), textcoords="offset points",
+                        xytext=(8, -10), fontsize=8)
+            continue
         area = 40 + 600 * math.sqrt(row["parameters"] / largest)
         ax.scatter(row["forward_ms_per_step"], row["rollout_mse"], s=area, color=colours[label],
-                   marker=MARKERS[datasets.index(name) % len(MARKERS)], alpha=0.75, edgecolors="black",
-                   label=f"{label} ({name})" if len(datasets) > 1 else label)
+                   marker=MARKERS[datasets.index(name) % len(MARKERS)], alpha=0.75, edgecolors="black", label=legend)
         ax.annotate(f"{label}\n{row['parameters'] / 1e6:.3g} M params", (row["forward_ms_per_step"], row["rollout_mse"]),
                     textcoords="offset points", xytext=(8, 6), fontsize=8)
+    for name, d in results["datasets"].items():  # each dataset's classical front, and its floor
+        solvers = d.get("references", {}).get("methods", {})
+        front = sorted((row["forward_ms_per_step"], row["rollout_mse"]) for n, label, row in points
+                       if n == name and label in solvers)
+        if len(front) > 1:
+            ax.plot(*zip(*front), color="0.35", linestyle="--", linewidth=1, zorder=2,
+                    label="classical solver front" + (f" ({name})" if len(datasets) > 1 else ""))
+        for label, info in solvers.items():
+            mse = d["summary"].get(label, {}).get("rollout_mse")
+            if info.get("perturbation") and mse is not None:
+                ax.axhline(mse, color=colours[label], linestyle=":", linewidth=1,
+                           label=f"predictability floor ({label}" + (f", {name})" if len(datasets) > 1 else ")"))
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("forward inference time (ms / step, median, radius graph included)")
+    ax.set_xlabel("forward inference time (ms / step, median, radius graph included; solvers: ms / frame)")
     ax.set_ylabel("rollout MSE (position units²)")
     ax.set_title("Accuracy against speed (lower left is better; marker area ∝ parameters)")
     ax.grid(True, which="both", alpha=0.3)

@@ -1,7 +1,9 @@
 """``report.md``: the paper's tables (rollout MSE per dataset and method, efficiency, inverse
 comparison) plus consistency against K, built from exactly what ``results.json`` holds.
 Each number is written with :func:`number` (4 significant digits in the unit its row or column
-names), so a reader or a test can check it against the JSON."""
+names), so a reader or a test can check it against the JSON. The solver references (the dataset's
+own solver re-run, :mod:`rgns.evaluation.references`) sit in the same tables as yardsticks: they
+are never the bold "best"."""
 from __future__ import annotations
 
 GAP = "—"  # not measured / not applicable / not finite
@@ -16,17 +18,36 @@ def steps_cell(steps: int | None, beyond: bool) -> str:
     return GAP if steps is None else (f"≥ {steps}" if beyond else f"{steps}")
 
 
-def table(header: list[str], rows: list[list[str]], best_lowest: set[int] = frozenset()) -> str:
-    """A markdown table; in the rows listed in ``best_lowest``, the lowest number is bold."""
+def table(header: list[str], rows: list[list[str]], best_lowest: set[int] = frozenset(),
+          yardsticks: set[str] = frozenset()) -> str:
+    """A markdown table; in the rows listed in ``best_lowest``, the lowest number is bold, among
+    the columns whose header is not in ``yardsticks``."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for i, row in enumerate(rows):
         if i in best_lowest:
-            values = [float(c) if c != GAP else float("inf") for c in row[1:]]
+            values = [float(c) if c != GAP and h not in yardsticks else float("inf") for h, c in zip(header[1:], row[1:])]
             if len(values) > 1 and min(values) < float("inf"):
                 j = values.index(min(values)) + 1
                 row = row[:j] + [f"**{row[j]}**"] + row[j + 1 :]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)
+
+
+def references(results: dict) -> set[str]:
+    """Labels of the solver references."""
+    return {label for label, info in results["methods"].items() if info.get("source") == "reference"}
+
+
+def references_text(name: str, d: dict) -> list[str]:
+    """What the solver references on a dataset are, or the sentence that says why there are none."""
+    section = d.get("references")
+    if not section:
+        return []
+    if not section["methods"]:
+        return [f"{name}: {section['note']}", ""]
+    return [f"Solver references on {name}, run from frame 0 and compared on the same frames (forward only):", "",
+            *(f"- {label}: {info['description']}" for label, info in section["methods"].items()),
+            *([f"- {section['note']}"] if section["note"] else []), ""]
 
 
 def _labels(results: dict, section: str) -> list[str]:
@@ -45,12 +66,15 @@ def forward_tables(results: dict) -> list[str]:
         f"{name}: {d['forward']['settings']['trajectories']} {d['split']} trajectories, rollouts of "
         f"{d['forward']['settings']['steps']} steps from frame {d['forward']['settings']['start']} "
         f"(capped by each trajectory's length)" for name, d in datasets.items())
+    yardsticks = references(results)
     out = ["## Rollout MSE (1e-3) in the forward process", "",
            f"Measured on {measured}. Rollout MSE as GNS defines it: mean over steps x particles x dims of the "
-           "squared position error (kinematic particles included, at zero error).", "",
-           table(["Dataset / Methods", *labels],
-                 [[name, *(number(d["forward"]["methods"].get(m, {}).get("rollout_mse"), 1e3) for m in labels)]
-                  for name, d in datasets.items()], best_lowest=set(range(len(datasets)))), "",
+           "squared position error (kinematic particles included, at zero error)."
+           + (" Bold: the best learned or training-free method (solver references are yardsticks)." if yardsticks else ""),
+           "", table(["Dataset / Methods", *labels],
+                     [[name, *(number(d["forward"]["methods"].get(m, {}).get("rollout_mse"), 1e3) for m in labels)]
+                      for name, d in datasets.items()], best_lowest=set(range(len(datasets))), yardsticks=yardsticks), "",
+           *(line for name, d in datasets.items() for line in references_text(name, d)),
            "Stable steps of the forward rollouts (the fewest over the trajectories; ≥ n: no divergence in the "
            "n steps rolled out):", "",
            table(["Dataset / Methods", *labels],
@@ -79,7 +103,14 @@ def efficiency_tables(results: dict) -> list[str]:
         if "efficiency" not in d:
             continue
         cost, s = d["efficiency"]["methods"], d["efficiency"]["settings"]
-        labels = list(cost)
+        labels, solvers = list(cost), [m for m in cost if m in references(results)]
+        timing = ""
+        if solvers:
+            taichi = d["references"]["methods"][solvers[0]]["taichi"]
+            timing = (f" Solver references ({', '.join(solvers)}): ms per frame of the solver's own rollout of that "
+                      f"trajectory from frame 0 ({cost[solvers[0]]['frames']} frames; wall time / frames, Taichi on "
+                      f"{taichi.get('arch')} with {taichi.get('num_threads')} thread(s), JIT warm-up excluded), no "
+                      "radius graph, no parameters; memory not measured. Bold: the best learned or training-free method.")
         rows = [
             ["Parameter Count (M)", *(number(cost[m]["parameters"], 1e-6) for m in labels)],
             ["Forward Inference Time (ms/step)", *(number(cost[m]["forward_ms_per_step"]) for m in labels)],
@@ -90,8 +121,8 @@ def efficiency_tables(results: dict) -> list[str]:
         out += ["", f"## Efficiency comparison on {name}", "",
                 f"Measured on the first {d['split']} trajectory at frame {s['frame']}: {s['particles']} particles, "
                 f"{s['edges']} edges; one step with its radius graph, median of {s['repeats']} warm repeats on "
-                f"{s['device']} with {s['threads']} thread(s). Memory: {s['memory_method']}.", "",
-                table(["Metrics / Methods", *labels], rows, best_lowest={1, 2, 3, 4})]
+                f"{s['device']} with {s['threads']} thread(s). Memory: {s['memory_method']}.{timing}", "",
+                table(["Metrics / Methods", *labels], rows, best_lowest={1, 2, 3, 4}, yardsticks=set(solvers))]
     return out
 
 
@@ -187,8 +218,7 @@ def goal_tables(results: dict) -> list[str]:
 
 def render(results: dict, charts: list[str]) -> str:
     methods = results["methods"]
-    sources = [f"- {label}: `{info['source']}`" + (f" (step {info['global_step']})" if info.get("global_step") else "")
-               for label, info in methods.items()]
+    sources = [f"- {label}: `{info['source']}`" + (f" (step {info['global_step']})" if info.get("global_step") else "") for label, info in methods.items()]
     environment = results["environment"]
     lines = ["# rgns evaluation", "",
              f"Reproduce with: `{results['command']}`", "",

@@ -1,5 +1,5 @@
-"""One evaluation: checkpoints and baselines in, ``results.json``, ``report.md``, charts and
-animations out (the body of ``python evaluate.py``)."""
+"""One evaluation: checkpoints, baselines and solver references in, ``results.json``,
+``report.md``, charts and animations out (the body of ``python evaluate.py``)."""
 from __future__ import annotations
 
 import json
@@ -63,6 +63,7 @@ def evaluate(cfg: DictConfig) -> dict:
     checkpoints = find_checkpoints(cfg.ckpt_path, cfg.ckpt_paths, cfg.checkpoints_dir, cfg.checkpoint)
     methods = load_checkpoints(checkpoints, cfg.device)
     tasks = [instantiate(task, _convert_="all") for task in cfg.task.values() if task is not None]  # task.X=null drops X
+    make_references = instantiate(cfg.references, _convert_="all") if cfg.get("references") else None  # null: none
 
     by_root: dict[str, list] = {}
     for method in methods:
@@ -83,14 +84,22 @@ def evaluate(cfg: DictConfig) -> dict:
         if dataset.name in results["datasets"]:  # two folders of one name (paths in sections["root"])
             dataset.name = f"{dataset.name}_{len(results['datasets']) + 1}"
         compared = trained + build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)
-        log.info("%s: %d trajectories, %s", dataset.name, len(dataset.trajectories), ", ".join(m.label for m in compared))
+        references, note = make_references(dataset) if make_references else ([], None)
+        log.info("%s: %d trajectories, %s", dataset.name, len(dataset.trajectories),
+                 ", ".join(m.label for m in compared + references))
+        if note:
+            log.info("%s: %s", dataset.name, note)
         sections, examples[dataset.name] = dict(root=root, split=cfg.split), {}
         for task in tasks:
-            sections[task.name], examples[dataset.name][task.name] = task(compared, dataset)
+            methods = compared + references if getattr(task, "compares_references", False) else compared
+            sections[task.name], examples[dataset.name][task.name] = task(methods, dataset)
+        if make_references:
+            sections["references"] = dict(settings=make_references.settings(), note=note,
+                                          methods={r.label: r.describe() for r in references})
         sections["bounds"] = dataset.metadata["bounds"]
         results["datasets"][dataset.name] = sections
-        for label in (m.label for m in compared if not m.trained):
-            results["methods"].setdefault(label, dict(source="baseline"))
+        for method in (m for m in compared + references if not m.trained):
+            results["methods"].setdefault(method.label, dict(source=method.source, **method.info))
 
     results = json.loads(json.dumps(results))  # what the file holds: str keys, no tensors
     for sections in results["datasets"].values():

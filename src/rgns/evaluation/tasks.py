@@ -12,7 +12,9 @@ one dataset with the methods to compare: ``task(methods, dataset) -> (results, e
   parameters.
 
 A new task is a class with a ``name`` and that call, a ``conf/task/<name>.yaml`` (``task=all``
-lists the files it composes), and its tables in :mod:`rgns.evaluation.report`.
+lists the files it composes), and its tables in :mod:`rgns.evaluation.report`. A task that also
+compares the solver references (:mod:`rgns.evaluation.references`: methods with ``model = None``,
+forward-only) says so with ``compares_references = True``; the others never see them.
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ from tqdm import tqdm
 from rgns.data.contract import KINEMATIC, open_split, read_metadata
 from rgns.evaluation.metrics import divergence_step, mmd, mse_per_step, optimal_transport
 from rgns.models import State
-from rgns.training.rollouts import forward_rollout, inverse_then_forward
+from rgns.training.rollouts import inverse_then_forward
 
 
 @dataclass
@@ -44,8 +46,9 @@ class Dataset:
     name: str
     root: str
     metadata: dict
-    trajectories: list[tuple[Tensor, Tensor]]  # (position [T, N, D], particle_type [N])
+    trajectories: list[tuple[Tensor, Tensor]]  # (position [T, N, D], particle_type [N]): the first of the split
     start: int  # t0: the first frame a rollout starts from (needs k frames of history before it)
+    split: str = "test"
 
     @classmethod
     def load(cls, root: str, split: str, trajectories: int | None, history: int, start: int | None,
@@ -56,7 +59,7 @@ class Dataset:
             count = len(data) if trajectories is None else min(trajectories, len(data))
             loaded = [(torch.from_numpy(p).to(device), torch.from_numpy(t).to(device))
                       for p, t in (data[i] for i in range(count))]
-        return cls(Path(root).name, str(root), read_metadata(root), loaded, history if start is None else start)
+        return cls(Path(root).name, str(root), read_metadata(root), loaded, history if start is None else start, split)
 
     @property
     def bounds(self) -> Tensor:
@@ -111,6 +114,7 @@ class ForwardRollout:
     """
 
     name = "forward"
+    compares_references = True
 
     def __init__(self, steps: int | None = 300, distribution_steps=(1, 10, 100, 300), distribution_particles: int = 1000,
                  divergence: dict | None = None, seed: int = 0):
@@ -131,10 +135,11 @@ class ForwardRollout:
                               "particle_type": dataset.trajectories[0][1].cpu()}
         bar = progress(len(methods) * len(lengths), f"forward rollouts ({dataset.name})")
         for method in methods:
+            bar.set_postfix_str(method.label)
             per_trajectory = []
             for i, ((position, particle_type), steps) in enumerate(zip(dataset.trajectories, lengths)):
                 start = dataset.start
-                predicted = forward_rollout(method.model, position, particle_type, start, steps)
+                predicted = method.forward_rollout(dataset, i, steps)
                 truth = position[start + 1 : start + 1 + steps]
                 per_trajectory.append(self._metrics(predicted, truth, particle_type, dataset, position, scale))
                 if i == 0:
@@ -217,7 +222,7 @@ class InverseConsistency:
         horizons = [K for K in self.horizons if K <= longest]
         if not horizons:
             raise ValueError(f"{dataset.name}: trajectories too short for any inverse horizon from frame {start}")
-        bidirectional = [m for m in methods if m.model.bidirectional]
+        bidirectional = [m for m in methods if m.bidirectional]
         work = sum(K <= len(p) - 1 - start for p, _ in dataset.trajectories for K in horizons) * len(bidirectional)
         bar = progress(work, f"inverse horizons ({dataset.name})")
         results, examples = {}, {"start": start, "horizon": horizons[-1], "truth": None, "inferred": {}, "resimulated": {},
@@ -339,7 +344,9 @@ def median_ms(fn, repeats: int, device: torch.device) -> float:
 class Efficiency:
     """Cost of one step on a real test state (the first trajectory at frame t0), radius graph
     included: forward and inverse ms per step (median of ``repeats`` after a warm-up), peak
-    memory of a step (see :func:`peak_memory_mb`) plus the weights, and parameters.
+    memory of a step (see :func:`peak_memory_mb`) plus the weights, and parameters. A solver
+    reference reports its own cost instead: ms per frame of its rollout of the first trajectory
+    (:meth:`rgns.evaluation.references.SolverReference.cost`).
 
     Args:
         repeats: timed repeats per measurement.
@@ -347,6 +354,7 @@ class Efficiency:
     """
 
     name = "efficiency"
+    compares_references = True
 
     def __init__(self, repeats: int = 5, memory: bool = True):
         self.repeats, self.memory = repeats, memory
@@ -356,6 +364,9 @@ class Efficiency:
         results = {}
         for method in tqdm(methods, desc=f"efficiency ({dataset.name})", leave=False, dynamic_ncols=True):
             model = method.model
+            if model is None:  # a solver reference: the ms per frame of its own rollout
+                results[method.label] = method.cost(dataset)
+                continue
             device = next(iter(model.buffers())).device
             state = State.from_positions(position[dataset.start - model.history : dataset.start + 1], particle_type)
             weights_mb = sum(t.numel() * t.element_size() for t in [*model.parameters(), *model.buffers()]) / 2**20
@@ -368,7 +379,8 @@ class Efficiency:
                 row[f"{direction}_step_peak_mb"] = peak
                 row[f"{direction}_memory_mb"] = None if peak is None else weights_mb + peak
             results[method.label] = row
-        edges = int(methods[0].model.graph(position[dataset.start]).size(1)) if methods else 0
+        models = [m.model for m in methods if m.model is not None]
+        edges = int(models[0].graph(position[dataset.start]).size(1)) if models else 0
         settings = dict(frame=dataset.start, particles=int(position.shape[1]), edges=edges, repeats=self.repeats,
                         device=str(position.device), threads=torch.get_num_threads(),
                         memory_method=("parameters and buffers plus the rise of torch.cuda.max_memory_allocated over one step"
