@@ -245,7 +245,7 @@ def test_two_dataset_folders_of_one_name_stay_apart(trained, tmp_path, monkeypat
     shutil.copytree(trained / "data", twin)
     loaded = load_checkpoints([checkpoint], "cpu") + load_checkpoints([checkpoint], "cpu")
     loaded[1].data_root = str(twin)
-    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device: loaded)
+    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device, **_: loaded)
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=forward", f"output_dir={tmp_path / 'out'}",
                                              "task.forward.steps=4", "baselines=null", *FAST[:3]])
@@ -273,3 +273,41 @@ def test_animation_shows_particles_that_leave_the_box(tmp_path):
         return ((frame[..., 0] > 180) & (frame[..., 1] < 90) & (frame[..., 2] < 90)).sum()
 
     assert red(frames[0]) == 0 and red(frames[1]) > 0 and red(frames[2]) > red(frames[1]) * 1.5
+
+
+def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_path, monkeypatch):
+    """Three runs differing only by their seed get one row of mean and spread; a model that rolls
+    out with hard walls is also scored without them; the farthest excursion out of the box is
+    reported."""
+    import rgns.evaluation.run as run_module
+    from rgns.evaluation.methods import load_checkpoints, seed_groups
+
+    checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
+    loaded = []
+    for seed in range(3):
+        method = load_checkpoints([checkpoint], "cpu")[0]
+        method.label += f" (seed={seed})"
+        method.info.update(seed=seed, overrides=["model=gns", f"seed={seed}"])
+        with torch.no_grad():  # three different models
+            for p in method.model.parameters():
+                p.add_(1e-3 * seed)
+        method.model.hard_walls = seed == 0
+        loaded.append(method)
+    assert list(seed_groups(loaded).values()) == [[m.label for m in loaded]]
+    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device, **_: loaded)
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=forward", f"output_dir={tmp_path / 'out'}",
+                                             "task.forward.steps=4", "references=null", *FAST[:3]])
+    results = evaluate(cfg)
+    (name, sections), = results["datasets"].items()
+    forward = sections["forward"]["methods"]
+    walled = loaded[0].label
+    assert f"{walled}, no hard walls" in forward and f"{loaded[1].label}, no hard walls" not in forward
+    assert all(row["max_outside"] is not None and row["max_outside"] >= 0 for row in forward.values())
+    group, = sections["over_seeds"].values()
+    values = [forward[m.label]["rollout_mse"] for m in loaded]
+    assert group["rollout_mse"]["values"] == pytest.approx(values)
+    assert group["rollout_mse"]["mean"] == pytest.approx(np.mean(values))
+    assert group["rollout_mse"]["std"] == pytest.approx(np.std(values, ddof=1))
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "### Over seeds on" in report and "(3 seeds)" in report and "Farthest outside the box" in report

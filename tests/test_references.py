@@ -181,7 +181,7 @@ def test_report_and_results_carry_the_reference_rows(generated, tmp_path, monkey
     metadata = json.loads((generated / "metadata.json").read_text())
     stand_in = Method("GNS 8x1", GNS(metadata, latent=8, layers=1).eval(), str(generated), "stand-in.ckpt")
     monkeypatch.setattr(run_module, "find_checkpoints", lambda *args: [])
-    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device: [stand_in])
+    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device, **_: [stand_in])
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("evaluate", overrides=["task=forward", f"output_dir={tmp_path}", "trajectories=2",
                                              "task.forward.distribution_steps=[1]", "task.efficiency.repeats=1",
@@ -224,7 +224,7 @@ def test_references_null_drops_them(generated, tmp_path, monkeypatch):
     metadata = json.loads((generated / "metadata.json").read_text())
     stand_in = Method("GNS 8x1", GNS(metadata, latent=8, layers=1).eval(), str(generated), "stand-in.ckpt")
     monkeypatch.setattr(run_module, "find_checkpoints", lambda *args: [])
-    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device: [stand_in])
+    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device, **_: [stand_in])
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("evaluate", overrides=["task=forward", f"output_dir={tmp_path}", "references=null",
                                              "baselines=null", "task.efficiency=null", "task.forward.steps=2",

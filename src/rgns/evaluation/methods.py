@@ -7,6 +7,7 @@ What the tasks use of a method: ``label``, ``trained``, ``bidirectional``, ``par
 references (:mod:`rgns.evaluation.references`) offer the same, with ``model = None``."""
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -108,15 +109,51 @@ def _disambiguate(methods: list[Method]) -> None:
             method.label += f" #{labels[:i].count(labels[i]) + 1}"
 
 
-def load_checkpoints(paths: list[Path], device: str = "cpu") -> list[Method]:
+def _run_seed(checkpoint: Path) -> int | None:
+    """The ``seed`` of the training run that wrote ``checkpoint`` (its ``.hydra/config.yaml``)."""
+    config = checkpoint.parent.parent / ".hydra" / "config.yaml"
+    return (yaml.safe_load(config.read_text()) or {}).get("seed") if config.is_file() else None
+
+
+def load_checkpoints(paths: list[Path], device: str = "cpu", pretrained=()) -> list[Method]:
+    """Methods of checkpoint files; those in ``pretrained`` are labelled ``<model> pretrained``."""
     methods = []
+    pretrained = {Path(p).resolve() for p in pretrained}
     for path in paths:
         model, extras = load_simulator(str(path), map_location=device)
         config = dict(extras["hparams"]["model"])
-        methods.append(Method(describe(config), model, extras["data_root"], str(path), dict(
-            model=config, global_step=extras["global_step"], overrides=_run_overrides(path))))
+        label = describe(config) + (" pretrained" if Path(path).resolve() in pretrained else "")
+        methods.append(Method(label, model, extras["data_root"], str(path), dict(
+            model=config, global_step=extras["global_step"], overrides=_run_overrides(path),
+            seed=_run_seed(path), base_label=label)))
     _disambiguate(methods)
     return methods
+
+
+def seed_groups(methods: list[Method]) -> dict[str, list[str]]:
+    """Labels of the runs that differ only by their seed, by what they share: ``{"R-GNS 32x2
+    (3 seeds)": [label, ...]}``; groups of one are left out."""
+    groups: dict[tuple, list[Method]] = {}
+    for method in methods:
+        if "base_label" not in method.info:
+            continue
+        same = tuple(sorted(o for o in method.info["overrides"] if not o.startswith(("seed=", "hydra"))))
+        groups.setdefault((method.info["base_label"], same, method.data_root), []).append(method)
+    return {f"{key[0]} ({len(group)} seeds)": [m.label for m in group]
+            for key, group in groups.items() if len(group) > 1 and len({m.info["seed"] for m in group}) == len(group)}
+
+
+def without_hard_walls(methods: list[Method]) -> list[Method]:
+    """For each method whose model rolls out with hard walls (``model.hard_walls``), a twin on
+    the same weights without them, labelled ``<label>, no hard walls``: what the network alone does."""
+    twins = []
+    for method in methods:
+        if getattr(method.model, "hard_walls", False):
+            model = copy.copy(method.model)  # shares the parameters; only the flag differs
+            model.hard_walls = False
+            twins.append(Method(f"{method.label}, no hard walls", model, method.data_root, method.source,
+                                dict(method.info, hard_walls=False)))
+    return twins
 
 
 def build_baselines(configs: dict | None, metadata: dict, history: int, device: str = "cpu") -> list[Method]:

@@ -84,9 +84,10 @@ def forward_tables(results: dict) -> list[str]:
         forward = d["forward"]
         steps = sorted({s for row in forward["methods"].values() for s in row["ot"]}, key=int)
         header = ["Method", "Rollout MSE (1e-3)", *(f"OT (1e-3), step {s}" for s in steps),
-                  *(f"MMD (1e-2), step {s}" for s in steps), "Stable steps"]
+                  *(f"MMD (1e-2), step {s}" for s in steps), "Stable steps", "Farthest outside the box (radii)"]
         rows = [[label, number(row["rollout_mse"], 1e3), *(number(row["ot"].get(s), 1e3) for s in steps),
-                 *(number(row["mmd"].get(s), 1e2) for s in steps), steps_cell(row["stable_steps"], not row["diverged"])]
+                 *(number(row["mmd"].get(s), 1e2) for s in steps), steps_cell(row["stable_steps"], not row["diverged"]),
+                 "—" if row.get("max_outside") is None else f"{row['max_outside']:.2f}"]
                 for label, row in forward["methods"].items()]
         s = forward["settings"]
         out += ["", f"### Forward rollouts on {name}", "",
@@ -94,6 +95,32 @@ def forward_tables(results: dict) -> list[str]:
                 f"{s['steps']} steps from frame {s['start']}. OT: squared 2-Wasserstein distance; MMD: squared MMD with "
                 f"Gaussian kernels at {s['mmd_scale']:g} x (0.5, 1, 2); both on at most {s['distribution_particles']} "
                 "moving particles, averaged over the trajectories.", "", table(header, rows)]
+    return out
+
+
+def seed_tables(results: dict) -> list[str]:
+    """Runs that differ only by their seed: mean, spread and range of their headline numbers."""
+    out = []
+    for name, d in results["datasets"].items():
+        groups = d.get("over_seeds") or {}
+        if not groups:
+            continue
+        summary = d.get("summary", {})
+        yardsticks = {label: row["rollout_mse"] for label, row in summary.items()
+                      if label in ("Const. velocity", "Ballistic + walls") and row.get("rollout_mse")}
+        header = ["Runs", "Rollout MSE (1e-3): mean ± std", "min – max", *(f"mean / {y}" for y in yardsticks),
+                  "Consistency MSE (1e-3): mean ± std"]
+        rows = []
+        for group, entry in groups.items():
+            mse, consistency = entry.get("rollout_mse"), entry.get("consistency_mse")
+            rows.append([group,
+                         GAP if mse is None else f"{1e3 * mse['mean']:.3g} ± {1e3 * mse['std']:.2g}",
+                         GAP if mse is None else f"{1e3 * mse['min']:.3g} – {1e3 * mse['max']:.3g}",
+                         *(GAP if mse is None else f"{mse['mean'] / value:.3g}" for value in yardsticks.values()),
+                         GAP if consistency is None else f"{1e3 * consistency['mean']:.3g} ± {1e3 * consistency['std']:.2g}"])
+        out += ["", f"### Over seeds on {name}", "",
+                "Runs whose training differed only by `seed`: the mean and sample standard deviation of their "
+                "numbers above.", "", table(header, rows)]
     return out
 
 
@@ -224,7 +251,7 @@ def render(results: dict, charts: list[str]) -> str:
              f"Reproduce with: `{results['command']}`", "",
              f"Run {results['date']} on {environment['device']} ({environment['threads']} thread(s)), "
              f"torch {environment['torch']}. Methods:", "", *sources, "",
-             *forward_tables(results), *efficiency_tables(results), *inverse_tables(results),
+             *forward_tables(results), *seed_tables(results), *efficiency_tables(results), *inverse_tables(results),
              *optimisation_tables(results), *goal_tables(results), "", "## Charts", ""]
     lines += [f"![{_title(c)}]({c})" for c in charts]
     return "\n".join(lines) + "\n"

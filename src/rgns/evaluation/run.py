@@ -9,12 +9,14 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from rgns.evaluation import plots, report
-from rgns.evaluation.methods import build_baselines, find_checkpoints, load_checkpoints
+from rgns.evaluation.methods import (build_baselines, find_checkpoints, load_checkpoints, seed_groups,
+                                     without_hard_walls)
 from rgns.evaluation.tasks import Dataset
 
 log = logging.getLogger(__name__)
@@ -46,6 +48,26 @@ def summarise(sections: dict) -> dict:
     return summary
 
 
+def over_seeds(summary: dict, groups: dict[str, list[str]]) -> dict:
+    """Mean, standard deviation (n - 1), least and greatest of each headline number over the
+    runs of a seed group (:func:`~rgns.evaluation.methods.seed_groups`) measured here."""
+    out = {}
+    for name, labels in groups.items():
+        rows = [summary[label] for label in labels if label in summary]
+        if len(rows) < 2:
+            continue
+        entry = {"runs": [label for label in labels if label in summary]}
+        for key in ("rollout_mse", "consistency_mse", "inverse_mse"):
+            values = [row.get(key) for row in rows]
+            if any(v is None for v in values):
+                continue
+            values = np.asarray(values, dtype=float)
+            entry[key] = dict(mean=float(values.mean()), std=float(values.std(ddof=1)), min=float(values.min()),
+                              max=float(values.max()), values=values.tolist())
+        out[name] = entry
+    return out
+
+
 def command_line() -> str:
     from hydra.core.hydra_config import HydraConfig
 
@@ -60,8 +82,12 @@ def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(cfg.threads)
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    checkpoints = find_checkpoints(cfg.ckpt_path, cfg.ckpt_paths, cfg.checkpoints_dir, cfg.checkpoint)
-    methods = load_checkpoints(checkpoints, cfg.device)
+    pretrained = find_checkpoints(ckpt_paths=cfg.pretrained) if cfg.get("pretrained") else []
+    given = cfg.ckpt_path or cfg.ckpt_paths or cfg.checkpoints_dir or not pretrained
+    checkpoints = find_checkpoints(cfg.ckpt_path, cfg.ckpt_paths, cfg.checkpoints_dir, cfg.checkpoint) if given else []
+    methods = load_checkpoints(checkpoints + [p for p in pretrained if p not in checkpoints], cfg.device,
+                               pretrained=pretrained)
+    groups = seed_groups(methods)
     tasks = [instantiate(task, _convert_="all") for task in cfg.task.values() if task is not None]  # task.X=null drops X
     make_references = instantiate(cfg.references, _convert_="all") if cfg.get("references") else None  # null: none
 
@@ -85,6 +111,8 @@ def evaluate(cfg: DictConfig) -> dict:
             dataset.name = f"{dataset.name}_{len(results['datasets']) + 1}"
         compared = trained + build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)
         references, note = make_references(dataset) if make_references else ([], None)
+        if cfg.get("without_hard_walls", True):  # the figure without the wall, beside the one with it
+            references = without_hard_walls(trained) + references
         log.info("%s: %d trajectories, %s", dataset.name, len(dataset.trajectories),
                  ", ".join(m.label for m in compared + references))
         if note:
@@ -98,12 +126,13 @@ def evaluate(cfg: DictConfig) -> dict:
                                           methods={r.label: r.describe() for r in references})
         sections["bounds"] = dataset.metadata["bounds"]
         results["datasets"][dataset.name] = sections
-        for method in (m for m in compared + references if not m.trained):
+        for method in compared + references:  # baselines, references and no-hard-walls twins
             results["methods"].setdefault(method.label, dict(source=method.source, **method.info))
 
     results = json.loads(json.dumps(results))  # what the file holds: str keys, no tensors
     for sections in results["datasets"].values():
         sections["summary"] = summarise(sections)
+        sections["over_seeds"] = over_seeds(sections["summary"], groups)
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     charts = plots.make_all(results, examples, out, cfg.animation)
     (out / "report.md").write_text(report.render(results, charts))

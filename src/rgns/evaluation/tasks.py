@@ -168,7 +168,10 @@ class ForwardRollout:
             ot_values[s] = optimal_transport(x, y) if ok else None
             mmd_values[s] = mmd(x, y, scale) if ok else None
         diverged = self.divergence.step(predicted, dataset, reference_speed(position, particle_type))
+        bounds = dataset.bounds.to(predicted.device)
+        outside = torch.maximum(bounds[:, 0] - predicted, predicted - bounds[:, 1]).clamp(min=0).nan_to_num(math.inf)
         return dict(rollout_mse=finite(per_step.mean()), mse_per_step=[finite(v) for v in per_step],
+                    max_outside=finite(outside.max() / scale),  # the farthest a particle got out of the box, in radii
                     ot=ot_values, mmd=mmd_values, steps=len(predicted),
                     stable_steps=len(predicted) if diverged is None else diverged, diverged=diverged is not None)
 
@@ -193,6 +196,8 @@ class ForwardRollout:
             mmd={s: at("mmd", s) for s in distribution_steps},
             stable_steps=stable,  # the fewest over the trajectories
             stable_steps_per_trajectory=[r["stable_steps"] for r in per_trajectory],
+            max_outside=None if any(r["max_outside"] is None for r in per_trajectory)
+            else max(r["max_outside"] for r in per_trajectory),  # radii, over all trajectories and steps
             diverged=any(r["diverged"] for r in per_trajectory),
         )
 

@@ -1,0 +1,186 @@
+"""Training recipes (pushforward, unrolled losses) and hard walls: what each promises, checked on
+tiny data."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+from torch_geometric.data import Batch
+
+from conftest import make_metadata
+from rgns.data.contract import WATER, open_split
+from rgns.data.windows import WindowDataset
+from rgns.models import GNS, State
+from rgns.models.base import Simulator
+from rgns.training.module import SimulatorModule
+from rgns.training.recipes import Pushforward, Unroll
+
+MODEL = {"_target_": "rgns.models.GNS", "latent": 8, "layers": 1}
+LOSS = {"_target_": "rgns.training.losses.LossDesign", "name": "DL4"}
+OPTIMIZER = {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}
+
+
+def test_pushforward_draws_only_entries_whose_step_has_passed():
+    schedule = Pushforward(steps=[-1, 10, 20], unrolls=[0, 1, 2], probs=[0, 1, 1])
+    generator = torch.Generator().manual_seed(0)
+    assert {schedule.draw(5, generator) for _ in range(50)} == {0}  # only the first entry, weight 0
+    assert {schedule.draw(15, generator) for _ in range(50)} == {1}
+    assert {schedule.draw(25, generator) for _ in range(200)} == {1, 2}
+    assert schedule.max_unrolls == 2
+    with pytest.raises(ValueError, match="same length"):
+        Pushforward(steps=[-1], unrolls=[0, 1], probs=[1, 1])
+
+
+def test_unroll_length_grows_on_its_schedule():
+    schedule = Unroll(steps=[0, 100, 300], lengths=[1, 3, 5])
+    assert [schedule.length(s) for s in (0, 99, 100, 299, 300, 10_000)] == [1, 1, 3, 3, 5, 5]
+    with pytest.raises(ValueError):
+        Unroll(steps=[0, 10], lengths=[2, 0])
+
+
+def windows_batch(root, lead: int, horizon: int) -> Batch:
+    split = open_split(root, "train")
+    windows = WindowDataset(split, radius=0.08, history=5, noise_std=1e-4, lead=lead, horizon=horizon)
+    return Batch.from_data_list([windows[0], windows[len(windows) - 1]])
+
+
+def module_with(pushforward=None, unroll=None, lead: int = 0, step: int = 100) -> SimulatorModule:
+    module = SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, noise_std=1e-4,
+                             pushforward=pushforward, unroll=unroll)
+    # what the module reads of its trainer in a training step
+    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(lead=lead), global_step=step)
+    return module
+
+
+def record_steps(module: SimulatorModule) -> list[bool]:
+    """Wrap the model's step: record, per call, whether gradients were being recorded."""
+    calls, step = [], module.model.step
+
+    def recorded(state, kinematic_position=None):
+        calls.append(torch.is_grad_enabled())
+        return step(state, kinematic_position)
+
+    module.model.step = recorded
+    return calls
+
+
+def test_window_frames_cover_lead_and_horizon(tiny_dataset):
+    batch = windows_batch(tiny_dataset, lead=3, horizon=4)
+    assert batch.frames.shape[1] == 3 + 5 + 1 + 4
+    split = open_split(tiny_dataset, "train")
+    windows = WindowDataset(split, radius=0.08, history=5, lead=3, horizon=4)
+    s, t = windows.index[0]
+    assert t == 5 + 3  # the first frame with the lead and the history before it
+    first = windows[0]
+    position, _ = split[s]
+    torch.testing.assert_close(first.frames[:, 3 + 5], torch.from_numpy(position[t]))  # p^t at index lead + k
+
+
+def test_pushforward_unrolls_its_steps_without_gradients(tiny_dataset):
+    module = module_with(pushforward={"steps": [-1], "unrolls": [3], "probs": [1]}, lead=3)
+    calls = record_steps(module)
+    terms = module._losses(windows_batch(tiny_dataset, lead=3, horizon=1))
+    assert calls == [False, False, False, True]  # three pushed steps, then the one trained on
+    terms["loss"].backward()
+    assert all(p.grad is not None for p in module.model.parameters() if p.requires_grad)
+
+
+def test_pushforward_asks_for_the_frames_it_needs(tiny_dataset):
+    module = module_with(pushforward={"steps": [-1], "unrolls": [3], "probs": [1]}, lead=1)
+    with pytest.raises(ValueError, match="data.lead >= 3"):
+        module._losses(windows_batch(tiny_dataset, lead=1, horizon=1))
+
+
+def test_unrolled_loss_has_gradients_through_every_step(tiny_dataset):
+    module = module_with(unroll={"steps": [0], "lengths": [3]})
+    batch = windows_batch(tiny_dataset, lead=0, horizon=3)
+    states, recording = [], []
+    step = module.model.step
+
+    def keep(state, kinematic_position=None):
+        recording.append(torch.is_grad_enabled())
+        state = step(state, kinematic_position)
+        state.position.retain_grad()
+        state.velocity_history.retain_grad()
+        states.append(state)
+        return state
+
+    module.model.step = keep
+    terms = module._losses(batch)
+    assert recording == [True, True, True]
+    terms["loss"].backward()
+    # every step's predicted velocity feeds the loss, and so does every position but the last,
+    # through the steps after it
+    assert all(s.velocity_history.grad is not None and s.velocity_history.grad[:, -1].abs().sum() > 0 for s in states)
+    assert all(s.position.grad is not None and s.position.grad.abs().sum() > 0 for s in states[:-1])
+
+
+def test_one_step_unroll_with_clean_input_is_the_position_error(tiny_dataset):
+    """With no noise, one unrolled step's MSE is the error of the predicted next position,
+    in units of the acceleration std."""
+    module = module_with(unroll={"steps": [0], "lengths": [2]})
+    module.hparams.noise_std = 0.0
+    batch = windows_batch(tiny_dataset, lead=0, horizon=2)
+    terms = module._losses(batch)
+    k = 5
+    frames = batch.frames
+    state = State(frames[:, k], (frames[:, 1 : k + 1] - frames[:, :k]), batch.particle_type, batch.batch)
+    with torch.no_grad():
+        errors = []
+        for j in range(2):
+            state = module.model.step(state, kinematic_position=frames[:, k + j + 1])
+            moving = batch.particle_type == WATER
+            errors.append((((state.position - frames[:, k + j + 1]) / module.model.acc_std_noisy)[moving] ** 2).mean())
+    torch.testing.assert_close(terms["forward_mse"].detach(), torch.stack(errors).mean(), rtol=1e-4, atol=0)
+
+
+class Falling(Simulator):
+    """A stand-in network that pushes particles into the floor: forward it predicts a fall,
+    backward an earlier frame below the floor."""
+
+    bidirectional = True
+
+    def next_velocity(self, position, velocity_history, particle_type, edge_index, batch=None):
+        return velocity_history[:, -1] + torch.tensor([0.0, -1e-3])
+
+    def oldest_velocity(self, position, velocity_history, particle_type, edge_index, batch=None):
+        return velocity_history[:, 0] + torch.tensor([0.0, 1e-3])  # p^{t-k} = p^{t-k+1} - v: below
+
+
+def resting_lattice() -> State:
+    xs, ys = torch.meshgrid(torch.linspace(0.2, 0.3, 6), torch.tensor([0.1]), indexing="ij")
+    position = torch.stack([xs.flatten(), ys.flatten()], -1)  # one row on the floor
+    return State(position, torch.zeros(len(position), 5, 2), torch.full((len(position),), WATER))
+
+
+@pytest.mark.parametrize("direction", ["step", "inverse_step"])
+def test_hard_walls_keep_a_resting_lattice_at_rest(direction):
+    state = resting_lattice()
+    start = state.position.clone()
+    model = Falling(make_metadata(), hard_walls=True)
+    for _ in range(10):
+        state = getattr(model, direction)(state)
+    torch.testing.assert_close(state.position, start, rtol=0, atol=0)
+    assert state.velocity_history.abs().max() == 0  # the wall took the velocity into it
+    loose = Falling(make_metadata(), hard_walls=False)
+    for _ in range(6):  # without the wall: forward it falls through, backward it came from below
+        state = getattr(loose, direction)(state if _ else resting_lattice())
+    assert state.velocity_history.abs().max() > 0
+    if direction == "step":
+        assert state.position[:, 1].max() < 0.1
+
+
+def test_hard_walls_keep_every_rollout_in_the_box():
+    torch.manual_seed(0)
+    model = GNS(make_metadata(), latent=8, layers=1, hard_walls=True)
+    with torch.no_grad():  # a network that throws particles about
+        for p in model.decoder.parameters():
+            p.mul_(1e4)
+    state = State(torch.rand(30, 2) * 0.8 + 0.1, torch.randn(30, 5, 2) * 1e-2, torch.full((30,), WATER))
+    positions = model.rollout(state, 20)
+    assert positions.min() < 0.101 and positions.max() > 0.899  # it does throw them at the walls
+    assert positions.min() >= 0.1 - 1e-6 and positions.max() <= 0.9 + 1e-6  # float32 round-off of p + v only
+    # p^{t+1} = p^t + v^{t+1} still holds
+    final = model.step(State(positions[-1], state.velocity_history, state.particle_type))
+    torch.testing.assert_close(final.position - positions[-1], final.velocity_history[:, -1])
