@@ -118,11 +118,34 @@ def test_rgns_forward_only_training_trains_the_same_network():
 
 # ---- exactness --------------------------------------------------------------------------------
 
+@pytest.mark.parametrize("history", [1, 4, 5, 6])
+def test_difference_basis_is_an_exact_change_of_basis(history):
+    """basis="differences": the middle velocity over the velocity std, the other slots as
+    accelerations over the acceleration std; decoding inverts it, and the identity latent map
+    is still constant velocity."""
+    model = RGNS(metadata(2), history=history, latent=16, layers=2, basis="differences")
+    velocity = torch.randn(9, history, 2, dtype=torch.float64) * 1e-3
+    model = model.double()
+    x = model.to_basis(velocity)
+    c = history // 2
+    torch.testing.assert_close(x[:, c], (velocity[:, c] - model.vel_mean) / model.vel_std_noisy)
+    if history > c + 1:
+        torch.testing.assert_close(x[:, -1], (velocity[:, -1] - velocity[:, -2]) / model.acc_std_noisy)
+    if c > 0:
+        torch.testing.assert_close(x[:, 0], (velocity[:, 1] - velocity[:, 0]) / model.acc_std_noisy)
+    torch.testing.assert_close(model.from_basis(x), velocity, rtol=0, atol=1e-15)
+    state = random_state(dim=2, seed=1)
+    model = RGNS(metadata(2), latent=16, layers=2, basis="differences")  # zero-initialised couplings
+    with torch.no_grad():
+        assert torch.allclose(model.step(state).velocity_history[:, -1], state.velocity_history[:, -1], atol=1e-9)
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("encoder", ["ilp", "mlp"])
-def test_inverse_step_recovers_position_and_known_history_exactly(dim, encoder):
+@pytest.mark.parametrize("basis", ["velocity", "differences"])
+def test_inverse_step_recovers_position_and_known_history_exactly(dim, encoder, basis):
     torch.manual_seed(dim)
-    model = RGNS(metadata(dim), latent=16, layers=10, encoder=encoder)
+    model = RGNS(metadata(dim), latent=16, layers=10, encoder=encoder, basis=basis)
     perturb(model, seed=dim)
     state = random_state(dim=dim, seed=dim)
     back = model.inverse_step(model.step(state))

@@ -11,6 +11,10 @@ One thread, one run, one synthetic 1,000-particle 2D dataset (uniform random par
 
 The targets are ratios from this one run: data loading well above the step rate, and the
 Trainer at least 0.8 of the bare step rate.
+
+``python -m rgns.bench training --main [--models rgns gns sep_gns]`` measures instead the main
+job's preset (``experiment=main``) on its dataset (``datasets/waterdrop40_main``, generated if
+missing): the bare training step of each model on real windows, one thread, median of repeats.
 """
 from __future__ import annotations
 
@@ -61,14 +65,60 @@ class StepTimer(L.Callback):
             self.end = time.perf_counter()
 
 
+def main_preset(models: list[str], steps: int, overrides: list[str]) -> dict:
+    """Bare training steps per second of the main preset's models on its dataset."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from rgns import config_dir
+
+    torch.set_num_threads(1)
+    result = {}
+    for name in models:
+        with initialize_config_dir(str(config_dir()), version_base="1.3"):
+            cfg = compose("train", overrides=["experiment=main", f"model={name}", "data.num_workers=0", *overrides],
+                          return_hydra_config=False)
+        datamodule = instantiate(cfg.data)
+        datamodule.prepare_data()
+        datamodule.setup("fit")
+        loader = iter(datamodule.train_dataloader())
+        batches = [next(loader) for _ in range(steps + 5)]
+        L.seed_everything(0)
+        module = instantiate(cfg.module, model=cfg.model, loss=cfg.loss, metadata=datamodule.metadata, _recursive_=False)
+        adam = torch.optim.Adam(module.parameters(), lr=1e-4)
+        times = []
+        for i, batch in enumerate(batches):
+            start = time.perf_counter()
+            adam.zero_grad(set_to_none=True)
+            module._losses(batch)["loss"].backward()
+            adam.step()
+            if i >= 5:
+                times.append(time.perf_counter() - start)
+        nodes = float(np.mean([b.num_nodes for b in batches]))
+        edges = float(np.mean([b.edge_index.shape[1] for b in batches]))
+        result[name] = dict(ms_per_step=1e3 * float(np.median(times)), steps_per_s=1 / float(np.median(times)),
+                            nodes_per_batch=nodes, edges_per_batch=edges)
+        print(f"{name:<10} {result[name]['ms_per_step']:8.1f} ms/step  {result[name]['steps_per_s']:7.1f} steps/s  "
+              f"({nodes:.0f} nodes, {edges:.0f} edges per batch of {datamodule.batch_size})", flush=True)
+    return result
+
+
 def main(argv: list[str]) -> None:
     parser = argparse.ArgumentParser(prog="python -m rgns.bench training", description=__doc__.splitlines()[0])
+    parser.add_argument("--main", action="store_true", help="the main preset's models on its dataset instead")
+    parser.add_argument("--models", nargs="+", default=["rgns", "gns", "sep_gns"])
     parser.add_argument("--particles", type=int, default=1000)
     parser.add_argument("--latent", type=int, default=64)
     parser.add_argument("--layers", type=int, default=5)
     parser.add_argument("--steps", type=int, default=30, help="measured steps (after 5 warm-up steps)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.main:
+        result = main_preset(args.models, args.steps, [])
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(result, indent=2) + "\n")
+        return
     torch.set_num_threads(1)
     warmup = 5
 

@@ -37,6 +37,8 @@ class RGNS(Simulator):
         node_norm (bool, optional): end each coupling in a LayerNorm, which bounds the change of
             velocity per step (:class:`~rgns.nn.reversible.Coupling`); ``False`` drops it.
             (default: :obj:`True`)
+        basis (str, optional): the node features the ILP reads, ``"velocity"`` (normalised
+            velocities) or ``"differences"`` (see :meth:`to_basis`). (default: ``"velocity"``)
     """
 
     bidirectional = True
@@ -44,8 +46,11 @@ class RGNS(Simulator):
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
                  edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, node_norm: bool = True,
-                 embedding: int = 16, hard_walls: bool = False):
+                 embedding: int = 16, hard_walls: bool = False, basis: str = "velocity"):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        if basis not in ("velocity", "differences"):
+            raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
+        self.basis = basis
         node_in = history * self.dim
         if encoder == "ilp":
             self.projection = ILP(node_in, latent)
@@ -66,12 +71,40 @@ class RGNS(Simulator):
                           dim=-1)  # [E, D + 1 + 2 (2D + embedding)]
         return self.edge_encoder(edges), condition
 
+    def to_basis(self, velocity_history: Tensor) -> Tensor:
+        """Physical ``V [N, k, D]`` -> the node features ``[N, k, D]`` the ILP reads.
+
+        ``basis="velocity"``: each velocity normalised by the velocity statistics.
+        ``basis="differences"``: a fixed invertible change of basis around the middle slot ``c``:
+        ``v^c`` normalised by the velocity statistics, every other slot as its difference to the
+        neighbour towards ``c`` (newer slots ``v^j - v^{j-1}``, older ``v^{j+1} - v^j``) over the
+        acceleration std. The newest and the oldest velocity are then the middle one plus a sum
+        of accelerations, so a coupling's increment to the end slots is in acceleration units in
+        both directions of time (GNS's precision) instead of velocity units.
+        """
+        if self.basis == "velocity":
+            return self.normalise_velocity(velocity_history)
+        c = self.history // 2
+        centre = self.normalise_velocity(velocity_history[:, c : c + 1])  # [N, 1, D]
+        newer = (velocity_history[:, c + 1 :] - velocity_history[:, c:-1]) / self.acc_std_noisy
+        older = (velocity_history[:, 1 : c + 1] - velocity_history[:, :c]) / self.acc_std_noisy
+        return torch.cat([older, centre, newer], dim=1)
+
+    def from_basis(self, x: Tensor) -> Tensor:
+        """The inverse of :meth:`to_basis`: ``[N, k, D]`` -> physical ``V [N, k, D]``."""
+        if self.basis == "velocity":
+            return self.denormalise_velocity(x)
+        c = self.history // 2
+        centre = self.denormalise_velocity(x[:, c : c + 1])  # [N, 1, D]
+        newer = centre + (x[:, c + 1 :] * self.acc_std_noisy).cumsum(1)  # v^{c+1} .. v^{k-1}
+        older = centre - (x[:, :c] * self.acc_std_noisy).flip(1).cumsum(1).flip(1)  # v^0 .. v^{c-1}
+        return torch.cat([older, centre, newer], dim=1)
+
     def encode(self, velocity_history: Tensor) -> Tensor:
-        return self.projection.encode(self.normalise_velocity(velocity_history).flatten(1))  # [N, k D] -> [N, C]
+        return self.projection.encode(self.to_basis(velocity_history).flatten(1))  # [N, k D] -> [N, C]
 
     def decode(self, latent: Tensor) -> Tensor:
-        x = self.projection.decode(latent).unflatten(1, (self.history, self.dim))  # [N, k, D]
-        return self.denormalise_velocity(x)
+        return self.from_basis(self.projection.decode(latent).unflatten(1, (self.history, self.dim)))  # [N, k, D]
 
     def forward_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                         edge_index: Tensor) -> Tensor:

@@ -58,9 +58,9 @@ class SimulatorModule(L.LightningModule):
     ):
         super().__init__()
         # Hydra hands over DictConfigs: store plain values, so checkpoints load with weights_only
-        model, metadata, loss, optimizer, scheduler = (
+        model, metadata, loss, optimizer, scheduler, pushforward, unroll = (
             OmegaConf.to_container(c, resolve=True) if isinstance(c, DictConfig) else c
-            for c in (model, metadata, loss, optimizer, scheduler)
+            for c in (model, metadata, loss, optimizer, scheduler, pushforward, unroll)
         )
         self.save_hyperparameters()
         model = dict(model)
