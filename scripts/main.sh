@@ -35,9 +35,12 @@ train() {
     hydra.run.dir="$out/train/$model" "$@" > "$out/train/$model.log" 2>&1
 }
 echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train/<model>.log)"
-train rgns 14000 00:00:12:00 "$@" &
+# sizes and recipes per model: docs/main_job.md (equal message-passing steps: R-GNS's 2 blocks hold
+# 4 couplings, GNS has 4 interaction layers; pushforward helped GNS, R-GNS needs the time for steps)
+train rgns 13000 00:00:12:00 "$@" &
 first=$!
-( train gns 16000 00:00:06:00 "$@" && train sep_gns 7000 00:00:06:00 "$@" ) &
+( train gns 9000 00:00:06:00 model.layers=4 recipe=pushforward "$@" \
+  && train sep_gns 4500 00:00:06:00 model.layers=4 recipe=pushforward "$@" ) &
 second=$!
 status=0
 wait $first || status=$?

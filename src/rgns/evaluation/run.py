@@ -87,6 +87,9 @@ def evaluate(cfg: DictConfig) -> dict:
     checkpoints = find_checkpoints(cfg.ckpt_path, cfg.ckpt_paths, cfg.checkpoints_dir, cfg.checkpoint) if given else []
     methods = load_checkpoints(checkpoints + [p for p in pretrained if p not in checkpoints], cfg.device,
                                pretrained=pretrained)
+    if cfg.get("hard_walls") is not None:  # roll every checkpoint out with (or without) hard walls
+        for method in methods:
+            method.model.hard_walls = bool(cfg.hard_walls)
     groups = seed_groups(methods)
     tasks = [instantiate(task, _convert_="all") for task in cfg.task.values() if task is not None]  # task.X=null drops X
     make_references = instantiate(cfg.references, _convert_="all") if cfg.get("references") else None  # null: none
