@@ -184,3 +184,18 @@ def test_hard_walls_keep_every_rollout_in_the_box():
     # p^{t+1} = p^t + v^{t+1} still holds
     final = model.step(State(positions[-1], state.velocity_history, state.particle_type))
     torch.testing.assert_close(final.position - positions[-1], final.velocity_history[:, -1])
+
+
+@pytest.mark.parametrize("batch, world, expected", [(2, 1, 1e-3), (8, 1, 4e-3), (4, 2, 4e-3)])
+def test_learning_rate_scales_with_the_batch(batch, world, expected):
+    module = SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, lr_reference_batch=2,
+                             scheduler={"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True})
+    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(batch_size=batch), world_size=world,
+                                      estimated_stepping_batches=100)
+    configured = module.configure_optimizers()
+    optimizer, scheduler = configured["optimizer"], configured["lr_scheduler"]["scheduler"]
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(expected)
+    assert scheduler.base_lrs == [pytest.approx(expected)]  # the schedule starts from the scaled lr
+    unscaled = SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER)
+    unscaled._trainer = module._trainer
+    assert unscaled.configure_optimizers().param_groups[0]["lr"] == pytest.approx(1e-3)

@@ -38,6 +38,9 @@ class SimulatorModule(L.LightningModule):
             schedule (forward loss only); needs ``data.lead`` >= its largest unroll.
         unroll: ``{steps, lengths}`` of an :class:`~rgns.training.recipes.Unroll` schedule: the
             forward loss through that many steps; needs ``data.horizon`` >= its longest.
+        lr_reference_batch: scale the optimiser's learning rate linearly with the graphs per
+            optimisation step (``data.batch_size`` x DDP ranks) over this reference batch (e.g.
+            2, the batch the lr was tuned at); ``None`` keeps the lr as given.
     """
 
     def __init__(
@@ -55,6 +58,7 @@ class SimulatorModule(L.LightningModule):
         val_trajectories: int = 2,
         pushforward: dict | None = None,
         unroll: dict | None = None,
+        lr_reference_batch: int | None = None,
     ):
         super().__init__()
         # Hydra hands over DictConfigs: store plain values, so checkpoints load with weights_only
@@ -221,6 +225,15 @@ class SimulatorModule(L.LightningModule):
     # -- optimisation -----------------------------------------------------------------------------
     def configure_optimizers(self):
         optimizer = instantiate(self.hparams.optimizer)(self.parameters())
+        if self.hparams.lr_reference_batch:  # linear scaling: lr x (graphs per step / reference)
+            datamodule = getattr(self.trainer, "datamodule", None)
+            batch = getattr(datamodule, "batch_size", None)
+            if batch is None:
+                raise ValueError("lr_reference_batch needs a datamodule with a batch_size")
+            factor = batch * self.trainer.world_size / self.hparams.lr_reference_batch
+            for group in optimizer.param_groups:
+                group["lr"] *= factor
+                group["initial_lr"] = group["lr"]
         if not self.hparams.scheduler:
             return optimizer
         total = self.trainer.estimated_stepping_batches
