@@ -57,7 +57,9 @@ fi
 phase "training, both processes (each run's own split of steps and validation: $out/train/<model>/timing.json)"
 
 echo "== 3/3 evaluation -> $out/evaluation"
-.venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best trajectories=8 hydra.run.dir="$out/evaluation"
+# every forward metric on all 8 test trajectories; the inverse at K = 1, 5, 20 and the table's 40
+.venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best trajectories=8 \
+  'task.inverse.horizons=[1,5,20,40]' hydra.run.dir="$out/evaluation"
 phase "evaluation"
 
 ln -sfn "$(basename "$out")" outputs/main/latest
