@@ -92,3 +92,32 @@ def test_default_data_makes_itself(tmp_path):
     cfg = train_cfg(tmp_path, f"data.root={tmp_path / 'data'}")
     datamodule = instantiate(cfg.data)
     assert datamodule.make is not None and datamodule.make.keywords["scene"] == "waterdrop"
+
+
+def main_job_runs() -> list[list[str]]:
+    """The train.py overrides of each run of scripts/main.sh, read from the script itself."""
+    import re
+    import shlex
+    from pathlib import Path
+
+    script = (Path(__file__).parents[1] / "scripts" / "main.sh").read_text()
+    common = shlex.split(re.search(r'train\.py (experiment=main .*?) hydra\.run\.dir', script, re.S).group(1)
+                         .replace("\\\n", " "))
+    runs = []
+    for model, steps, cap, extra in re.findall(r'train (\w+) (\d+) (\S+) ((?:[\w.]+=\S+ )*)"\$@"', script):
+        values = {"$model": model, "$steps": steps, "$cap": cap}
+        resolved = [re.sub(r'"?(\$\w+)"?', lambda m: values[m.group(1)], arg) for arg in common]
+        runs.append(resolved + extra.split())
+    return runs
+
+
+def test_main_job_runs_compose_and_instantiate(tmp_path, tiny_dataset):
+    """Every training run of scripts/main.sh composes with the overrides the script passes."""
+    runs = main_job_runs()
+    assert sorted(r[1] for r in runs) == ["model=gns", "model=rgns", "model=sep_gns"]
+    for overrides in runs:
+        cfg = train_cfg(tmp_path, *overrides, f"data.root={tiny_dataset}", "data.make=null")
+        assert cfg.trainer.enable_progress_bar is False and cfg.model.hard_walls is True
+        trainer = instantiate(cfg.trainer, logger=False, callbacks=[])
+        assert trainer.max_steps == int(overrides[2].split("=")[1])
+        build_module(cfg, read_metadata(tiny_dataset))
