@@ -114,22 +114,22 @@ def evaluate(cfg: DictConfig) -> dict:
             dataset.name = f"{dataset.name}_{len(results['datasets']) + 1}"
         compared = trained + build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)
         references, note = make_references(dataset) if make_references else ([], None)
-        if cfg.get("without_hard_walls", True):  # the figure without the wall, beside the one with it
-            references = without_hard_walls(trained) + references
+        # the figure without the wall, beside the one with it (forward tasks, like the references)
+        twins = without_hard_walls(trained) if cfg.get("without_hard_walls", True) else []
         log.info("%s: %d trajectories, %s", dataset.name, len(dataset.trajectories),
-                 ", ".join(m.label for m in compared + references))
+                 ", ".join(m.label for m in compared + twins + references))
         if note:
             log.info("%s: %s", dataset.name, note)
         sections, examples[dataset.name] = dict(root=root, split=cfg.split), {}
         for task in tasks:
-            methods = compared + references if getattr(task, "compares_references", False) else compared
+            methods = compared + twins + references if getattr(task, "compares_references", False) else compared
             sections[task.name], examples[dataset.name][task.name] = task(methods, dataset)
         if make_references:
             sections["references"] = dict(settings=make_references.settings(), note=note,
                                           methods={r.label: r.describe() for r in references})
         sections["bounds"] = dataset.metadata["bounds"]
         results["datasets"][dataset.name] = sections
-        for method in compared + references:  # baselines, references and no-hard-walls twins
+        for method in compared + twins + references:  # baselines, no-hard-walls twins, references
             results["methods"].setdefault(method.label, dict(source=method.source, **method.info))
 
     results = json.loads(json.dumps(results))  # what the file holds: str keys, no tensors
