@@ -38,11 +38,12 @@ train() {
 echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train/<model>.log)"
 # sizes and recipes per model: docs/main_job.md (equal message-passing steps: R-GNS's 2 blocks hold
 # 4 couplings, GNS has 4 interaction layers; pushforward helped GNS, R-GNS needs the time for steps)
-# (the step budgets end well within the caps on a 2-core machine, so a run's result is its seed's)
+# (the step budgets end well within the caps on a 2-core machine, so a run's result is its seed's;
+# each is a multiple of the validation interval, 2,500: last.ckpt is written at validations only)
 train rgns 10000 00:00:12:00 "$@" &
 first=$!
-( train gns 7000 00:00:06:00 model.layers=4 recipe=pushforward "$@" \
-  && train sep_gns 3500 00:00:06:00 model.layers=4 recipe=pushforward "$@" ) &
+( train gns 7500 00:00:07:00 model.layers=4 recipe=pushforward "$@" \
+  && train sep_gns 5000 00:00:07:00 model.layers=4 recipe=pushforward "$@" ) &
 second=$!
 status=0
 wait $first || status=$?

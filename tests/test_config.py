@@ -120,4 +120,6 @@ def test_main_job_runs_compose_and_instantiate(tmp_path, tiny_dataset):
         assert cfg.trainer.enable_progress_bar is False and cfg.model.hard_walls is True
         trainer = instantiate(cfg.trainer, logger=False, callbacks=[])
         assert trainer.max_steps == int(overrides[2].split("=")[1])
+        # last.ckpt is written at validations: a budget between two would lose its last steps
+        assert trainer.max_steps % cfg.trainer.val_check_interval == 0, overrides
         build_module(cfg, read_metadata(tiny_dataset))
