@@ -174,18 +174,23 @@ def test_datasets_without_a_rebuildable_generator_get_no_solver_and_say_why(gene
 
 # ---- in evaluate.py's results and report ------------------------------------------------------
 
-def test_report_and_results_carry_the_reference_rows(generated, tmp_path, monkeypatch):
-    """A stand-in for a trained checkpoint (an untrained GNS) beside the baselines and references."""
-    from test_evaluate import markdown_tables, value
-
+def stand_in_config(generated, monkeypatch, overrides: list[str]):
+    """The evaluate config for ``overrides``, with an untrained GNS standing in for a checkpoint."""
     metadata = json.loads((generated / "metadata.json").read_text())
     stand_in = Method("GNS 8x1", GNS(metadata, latent=8, layers=1).eval(), str(generated), "stand-in.ckpt")
     monkeypatch.setattr(run_module, "find_checkpoints", lambda *args: [])
     monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device, **_: [stand_in])
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("evaluate", overrides=["task=forward", f"output_dir={tmp_path}", "trajectories=2",
-                                             "task.forward.distribution_steps=[1]", "task.efficiency.repeats=1",
-                                             "task.efficiency.memory=false", "animation.max_frames=3"])
+        return compose("evaluate", overrides=overrides)
+
+
+def test_report_and_results_carry_the_reference_rows(generated, tmp_path, monkeypatch):
+    """A stand-in for a trained checkpoint (an untrained GNS) beside the baselines and references."""
+    from test_evaluate import markdown_tables, value
+
+    cfg = stand_in_config(generated, monkeypatch, ["task=forward", f"output_dir={tmp_path}", "trajectories=2",
+                                                   "task.forward.distribution_steps=[1]", "task.efficiency.repeats=1",
+                                                   "task.efficiency.memory=false", "animation.max_frames=3"])
     evaluate(cfg)
     results = json.loads((tmp_path / "results.json").read_text())
     data = results["datasets"][generated.name]
@@ -221,14 +226,9 @@ def test_report_and_results_carry_the_reference_rows(generated, tmp_path, monkey
 
 
 def test_references_null_drops_them(generated, tmp_path, monkeypatch):
-    metadata = json.loads((generated / "metadata.json").read_text())
-    stand_in = Method("GNS 8x1", GNS(metadata, latent=8, layers=1).eval(), str(generated), "stand-in.ckpt")
-    monkeypatch.setattr(run_module, "find_checkpoints", lambda *args: [])
-    monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device, **_: [stand_in])
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("evaluate", overrides=["task=forward", f"output_dir={tmp_path}", "references=null",
-                                             "baselines=null", "task.efficiency=null", "task.forward.steps=2",
-                                             "task.forward.distribution_steps=[1]", "animation.max_frames=2"])
+    cfg = stand_in_config(generated, monkeypatch, ["task=forward", f"output_dir={tmp_path}", "references=null",
+                                                   "baselines=null", "task.efficiency=null", "task.forward.steps=2",
+                                                   "task.forward.distribution_steps=[1]", "animation.max_frames=2"])
     results = evaluate(cfg)
     data = results["datasets"][generated.name]
     assert list(data["forward"]["methods"]) == ["GNS 8x1"] and "references" not in data
