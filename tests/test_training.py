@@ -125,6 +125,10 @@ def test_last_checkpoint_is_the_latest_state(dataset, tmp_path):
     assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == 12
     (best,) = (run / "checkpoints").glob("best-step*.ckpt")
     assert torch.load(best, weights_only=False)["global_step"] < 12
+    # callbacks.time_split: the fit's time in optimisation steps and validation, in the run folder
+    timing = json.loads((run / "timing.json").read_text())
+    assert timing["steps"] == 12 and 0 < timing["steps_s"] < timing["fit_s"] and timing["validation_s"] > 0
+    assert timing["steps_fraction"] == pytest.approx(timing["steps_s"] / timing["fit_s"])
 
 
 def test_resume_after_kill_continues_from_last_checkpoint(dataset, tmp_path):
