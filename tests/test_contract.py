@@ -218,7 +218,7 @@ def test_round_trip(tmp_path, tiny_dataset):
     trajectories[0][0][2, 1, 0] = -0.0
     metadata = dict(json.loads((tiny_dataset / "metadata.json").read_text()), dim=3, bounds=[[0.0, 1.0]] * 3)
     for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
-        metadata[key] = rng.normal(size=3).tolist()
+        metadata[key] = (rng.normal(size=3) if key.endswith("mean") else rng.uniform(0.5, 2.0, 3)).tolist()
     metadata["generator"] = {"name": "test", "seed": 3}
     folder = tmp_path / "roundtrip"
     for split in SPLITS:

@@ -24,6 +24,7 @@ interrupted write never leaves a half-written file where a good one was.
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
@@ -83,8 +84,56 @@ def dataset_folder(folder: str | os.PathLike) -> Path:
     return folder
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_integer(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_values(path: Path, metadata: dict) -> None:
+    """Types and ranges of the keys the code reads, each error naming the key and what it expected."""
+    def fail(key: str, expected: str) -> None:
+        value = metadata[key]
+        raise DatasetError(f"{path}: key '{key}' must be {expected}, got {value!r} ({type(value).__name__})")
+
+    dim = metadata["dim"]
+    if not _is_integer(dim) or dim not in (2, 3):
+        raise DatasetError(f"{path}: key 'dim' must be 2 or 3, got {dim!r}")
+    for key in ("bounds", "vel_mean", "vel_std", "acc_mean", "acc_std"):
+        if not isinstance(metadata[key], list):
+            what = "[low, high] rows" if key == "bounds" else "numbers"
+            raise DatasetError(f"{path}: key '{key}' must be a list of {dim} {what}, got {metadata[key]!r}")
+    for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
+        if len(metadata[key]) != dim:
+            raise DatasetError(f"{path}: key '{key}' has {len(metadata[key])} entries, 'dim' is {dim}")
+    if len(metadata["bounds"]) != dim:
+        raise DatasetError(f"{path}: key 'bounds' has {len(metadata['bounds'])} rows, 'dim' is {dim}")
+    if not all(isinstance(row, list) and len(row) == 2 and all(map(_is_number, row)) and row[0] < row[1]
+               for row in metadata["bounds"]):
+        fail("bounds", f"{dim} rows [low, high] of numbers with low < high")
+    if not _is_integer(metadata["sequence_length"]) or metadata["sequence_length"] < 1:
+        fail("sequence_length", "a positive integer (frames per trajectory - 1)")
+    for key in ("default_connectivity_radius", "dt"):
+        if not _is_number(metadata[key]) or metadata[key] <= 0:
+            fail(key, "a positive number")
+    for key in ("vel_mean", "acc_mean"):
+        if not all(map(_is_number, metadata[key])):
+            fail(key, f"a list of {dim} finite numbers")
+    for key in ("vel_std", "acc_std"):  # 0 where nothing moves along an axis (the models add the noise std)
+        if not all(_is_number(v) and v >= 0 for v in metadata[key]):
+            fail(key, f"a list of {dim} numbers >= 0")
+    if "num_particles_max" in metadata and not (_is_integer(metadata["num_particles_max"])
+                                                and metadata["num_particles_max"] >= 1):
+        fail("num_particles_max", "a positive integer")
+    if "gravity" in metadata and not (isinstance(metadata["gravity"], list) and len(metadata["gravity"]) == dim
+                                      and all(map(_is_number, metadata["gravity"]))):
+        fail("gravity", f"a list of {dim} numbers")
+
+
 def read_metadata(folder: str | os.PathLike) -> dict:
-    """Read and check ``metadata.json`` of a dataset folder."""
+    """Read and check ``metadata.json`` of a dataset folder: every key present, of its type and range."""
     path = dataset_folder(folder) / "metadata.json"
     if not path.is_file():
         raise DatasetError(f"{path}: metadata file is missing")
@@ -97,18 +146,7 @@ def read_metadata(folder: str | os.PathLike) -> dict:
     missing = [key for key in REQUIRED_KEYS if key not in metadata]
     if missing:
         raise DatasetError(f"{path}: missing key(s) {', '.join(missing)}")
-    dim = metadata["dim"]
-    if dim not in (2, 3):
-        raise DatasetError(f"{path}: key 'dim' must be 2 or 3, got {dim!r}")
-    for key in ("bounds", "vel_mean", "vel_std", "acc_mean", "acc_std"):
-        if not isinstance(metadata[key], list):
-            what = "[low, high] rows" if key == "bounds" else "numbers"
-            raise DatasetError(f"{path}: key '{key}' must be a list of {dim} {what}, got {metadata[key]!r}")
-    for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
-        if len(metadata[key]) != dim:
-            raise DatasetError(f"{path}: key '{key}' has {len(metadata[key])} entries, 'dim' is {dim}")
-    if len(metadata["bounds"]) != dim:
-        raise DatasetError(f"{path}: key 'bounds' has {len(metadata['bounds'])} rows, 'dim' is {dim}")
+    _check_values(path, metadata)
     return metadata
 
 
@@ -218,6 +256,10 @@ class Split:
         if not np.isfinite(position).all():
             frame = int(np.nonzero(~np.isfinite(position).reshape(len(position), -1).all(1))[0][0])
             raise DatasetError(f"{self._where(key)}: 'position' holds NaN or Inf (first at frame {frame})")
+        unknown = np.setdiff1d(particle_type, np.arange(NUM_PARTICLE_TYPES))
+        if len(unknown):
+            raise DatasetError(f"{self._where(key)}: 'particle_type' holds {unknown.tolist()}, not DeepMind ids "
+                               f"0..{NUM_PARTICLE_TYPES - 1} (5 water, 6 sand, 7 goop, 3 boundary, 0 rigid)")
         return Trajectory(position, particle_type)
 
     def __iter__(self) -> Iterator[Trajectory]:
@@ -249,12 +291,43 @@ def open_split(folder: str | os.PathLike, split: str, min_frames: int = 1) -> Sp
     return Split(split_path(folder, split), dim=metadata["dim"], min_frames=min_frames)
 
 
+class Contents(NamedTuple):
+    """What :func:`check_dataset` found: the metadata, and per split checked the ``[T, N, D]`` of
+    each trajectory and the particle types it holds (``None`` for a split not read through)."""
+
+    metadata: dict
+    shapes: dict[str, list[tuple[int, int, int]]]
+    particle_types: dict[str, list[int] | None]
+
+
+def check_dataset(folder: str | os.PathLike, min_frames: int | dict[str, int] = 1,
+                  splits: Iterable[str] = SPLITS, read: Iterable[str] | None = None) -> Contents:
+    """Check a dataset before any work on it: ``metadata.json`` (keys, types, ranges), each of
+    ``splits`` present, readable, of the right shapes and with at least ``min_frames`` frames per
+    trajectory (one number, or one per split), and every trajectory of the splits in ``read``
+    (default: all of ``splits``) read through: positions finite, particle types DeepMind's ids,
+    particles that move (not all kinematic: a loss over none is NaN). Raises the first
+    :class:`DatasetError`."""
+    metadata = read_metadata(folder)
+    splits = list(splits)
+    read = splits if read is None else list(read)
+    shapes, particle_types = {}, {}
+    for split in splits:
+        frames = min_frames.get(split, 1) if isinstance(min_frames, dict) else min_frames
+        with Split(split_path(folder, split), dim=metadata["dim"], min_frames=frames) as data:
+            shapes[split], particle_types[split] = data.shapes, None
+            if split not in read:
+                continue
+            seen = set()
+            for key, (_, particle_type) in zip(data.keys, data):
+                if (particle_type == KINEMATIC).all():
+                    raise DatasetError(f"{data._where(key)}: no moving particles (all {len(particle_type)} of "
+                                       f"its particles are kinematic, type {KINEMATIC}): a loss over none is NaN")
+                seen.update(np.unique(particle_type).tolist())
+            particle_types[split] = sorted(seen)
+    return Contents(metadata, shapes, particle_types)
+
+
 def validate_dataset(folder: str | os.PathLike, min_frames: int = 1) -> dict:
     """Read every trajectory of every split; raise the first contract violation. Returns metadata."""
-    metadata = read_metadata(folder)
-    for split in SPLITS:
-        with open_split(folder, split, min_frames) as data:
-            for _ in data:
-                pass
-    return metadata
-
+    return check_dataset(folder, min_frames).metadata

@@ -1,24 +1,34 @@
 """The LightningDataModule: a dataset folder in, PyG batches of windows out."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Callable
 
 import lightning as L
 from torch_geometric.loader import DataLoader
 
-from rgns.data.contract import DatasetError, open_split, read_metadata
+from rgns.data.contract import Contents, DatasetError, check_dataset, open_split
 from rgns.data.windows import TrajectoryDataset, WindowDataset
+
+log = logging.getLogger(__name__)
 
 
 class ParticleDataModule(L.LightningDataModule):
     """Windows for training and validation, trajectories for rollouts.
+
+    The whole dataset is checked (:func:`~rgns.data.contract.check_dataset`: metadata types and
+    ranges, every split, every trajectory) once, before training starts: in :meth:`prepare_data`,
+    or when :attr:`metadata` or :meth:`setup` is first reached.
 
     Args:
         root: the dataset folder (``metadata.json`` + ``{train,valid,test}.h5``).
         make: called as ``make(out_dir=root)`` by ``prepare_data`` when the folder has no
             ``metadata.json`` (e.g. a partial of :func:`rgns.data.generate.generate_dataset`);
             ``None`` means the dataset must already exist.
+        make_root: the one folder ``make`` may generate into (the configured default dataset's);
+            a missing ``root`` anywhere else is an error naming it, so a typo in ``data.root`` is
+            never filled with a new dataset. ``None``: ``root`` itself.
         history: k, velocities per history.
         noise_std: random-walk noise on training windows.
         batch_size: graphs per batch (the paper's is 2).
@@ -38,31 +48,60 @@ class ParticleDataModule(L.LightningDataModule):
         num_workers: int = 0,
         lead: int = 0,
         horizon: int = 1,
+        make_root: str | None = None,
     ):
         super().__init__()
+        if isinstance(history, bool) or not isinstance(history, int) or history < 1:
+            raise ValueError(f"history={history!r}: a state needs at least one velocity (k >= 1; GNS uses 5)")
+        if not noise_std >= 0:  # also refuses NaN
+            raise ValueError(f"noise_std={noise_std!r}: the training noise's std must be >= 0 (0: no noise)")
+        if batch_size < 1 or num_workers < 0:
+            raise ValueError(f"data.batch_size={batch_size} must be >= 1 and data.num_workers={num_workers} >= 0")
         self.root = Path(root)
         self.make = make
+        self.make_root = None if make_root is None else Path(make_root)
         self.history, self.noise_std = history, noise_std
         self.batch_size, self.num_workers = batch_size, num_workers
         self.lead, self.horizon = lead, horizon
-        self._metadata: dict | None = None
+        self._contents: Contents | None = None
 
     def prepare_data(self) -> None:
-        if (self.root / "metadata.json").is_file():
-            return
+        if not (self.root / "metadata.json").is_file():
+            self._make()
+        self.check()
+
+    def _make(self) -> None:
+        how = (f"Make one with `python -m rgns.data.generate scene=waterdrop out_dir={self.root}` or convert "
+               f"DeepMind's files with `python -m rgns.data.convert SRC_DIR {self.root}`")
         if self.make is None:
+            raise DatasetError(f"{self.root}: no dataset here (no metadata.json). {how}")
+        if self.make_root is not None and self.make_root.resolve() != self.root.resolve():
             raise DatasetError(
-                f"{self.root}: no dataset here. Make one with "
-                f"`python -m rgns.data.generate scene=waterdrop out_dir={self.root}` or convert "
-                f"DeepMind's files with `python -m rgns.data.convert SRC_DIR {self.root}`"
+                f"{self.root}: no dataset here (no metadata.json), and only the default dataset, {self.make_root}, is "
+                f"generated on first use (data.make_root). Check data.root for a typo, or: {how}"
             )
         self.make(out_dir=str(self.root))
 
+    def check(self) -> Contents:
+        """The whole dataset, checked once (see the class docs)."""
+        if self._contents is None:
+            k = self.history
+            # a training window spans lead + k + 1 + horizon frames, a validation window k + 2
+            contents = check_dataset(self.root, min_frames={"train": self.lead + k + 1 + self.horizon, "valid": k + 2})
+            if not contents.shapes["train"]:
+                raise DatasetError(f"{self.root / 'train.h5'}: no trajectories; nothing to train on")
+            if not contents.shapes["valid"]:
+                log.warning("%s: no trajectories: training runs without validation (no val/ metrics, no best "
+                            "checkpoint)", self.root / "valid.h5")
+            self._contents = contents
+        return self._contents
+
     @property
     def metadata(self) -> dict:
-        if self._metadata is None:
-            self._metadata = read_metadata(self.root)
-        return self._metadata
+        """``metadata.json`` plus ``particle_types``, those of the train split: a model built from it
+        (and its checkpoint) knows which types it was trained on."""
+        contents = self.check()
+        return dict(contents.metadata, particle_types=contents.particle_types["train"])
 
     @property
     def radius(self) -> float:
@@ -72,6 +111,7 @@ class ParticleDataModule(L.LightningDataModule):
         return open_split(self.root, name, min_frames=self.history + 2)
 
     def setup(self, stage: str | None = None) -> None:
+        self.check()
         if stage in (None, "fit"):
             self.train_set = WindowDataset(self.split("train"), self.radius, self.history, self.noise_std,
                                            self.lead, self.horizon)

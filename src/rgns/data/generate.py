@@ -26,8 +26,9 @@ What it guarantees:
 - ``workers`` processes (spawned) simulate trajectories in parallel, a progress bar counts them;
 - each finished trajectory is saved in ``out_dir/.parts/``; a restart skips them, and a split
   file appears (atomically) only once all its trajectories exist; ``metadata.json`` is written
-  last, so a folder with ``metadata.json`` is complete. A folder made with other settings is
-  never mixed with: generation stops with an error;
+  last, so a folder with ``metadata.json`` is complete. A folder made with other settings, or
+  holding split files without a ``metadata.json`` or plan of this generation, or an unreadable
+  ``metadata.json``, is never mixed with: generation stops with an error naming it;
 - ``metadata.json`` carries DeepMind's keys (statistics from the train split) plus
   ``num_particles_max``, ``gravity``, ``regime`` (:func:`rgns.data.stats.dataset_regime` of the
   train split: mean neighbours over each trajectory, kinetic energy left at the end) and
@@ -128,6 +129,14 @@ def _load_part(parts: Path, split: str, index: int) -> tuple[np.ndarray, np.ndar
 
 
 # ---------------------------------------------------------------- the dataset
+def _read_json(path: Path, what: str):
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DatasetError(f"{path}: not valid JSON ({err}), so not {what}; the folder's files cannot be trusted: "
+                           "choose another out_dir or delete them") from None
+
+
 def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories: int | None = None,
                      num_frames: int | None = None, seed: int = 0, workers: int = 2, arch: str = "cpu",
                      progress: bool = True, splits: Mapping[str, int | None] | None = None) -> Path:
@@ -155,17 +164,23 @@ def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories
     parts = out_dir / ".parts"
     metadata_path = out_dir / "metadata.json"
     if metadata_path.is_file():
-        made_with = json.loads(metadata_path.read_text()).get("generator")
+        made_with = _read_json(metadata_path, "the metadata of a finished dataset")
+        made_with = made_with.get("generator") if isinstance(made_with, dict) else made_with
         if made_with != json.loads(json.dumps(generator)):
             raise DatasetError(f"{out_dir}: holds a dataset made with other settings ({made_with}); "
                                "choose another out_dir or delete it")
         return out_dir
     plan_path = parts / "plan.json"
     if plan_path.is_file():
-        if json.loads(plan_path.read_text()) != json.loads(json.dumps(generator)):
+        if _read_json(plan_path, "the plan of an unfinished generation") != json.loads(json.dumps(generator)):
             raise DatasetError(f"{out_dir}: an unfinished generation with other settings is in {parts}; "
                                "delete it or rerun with its settings")
     else:
+        strays = [f"{split}.h5" for split in SPLITS if (out_dir / f"{split}.h5").exists()]
+        if strays:  # split files without a plan: not this generation's, and they would be kept
+            raise DatasetError(f"{out_dir}: holds {', '.join(strays)} but no metadata.json and no unfinished "
+                               f"generation ({plan_path}): files from something else; choose another out_dir "
+                               "or delete them")
         with atomic_path(plan_path) as tmp:
             tmp.write_text(json.dumps(generator, indent=2, sort_keys=True))
 
