@@ -8,6 +8,7 @@ references (:mod:`rgns.evaluation.references`) offer the same, with ``model = No
 from __future__ import annotations
 
 import copy
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,8 +17,10 @@ from hydra.utils import instantiate
 from torch import Tensor
 
 from rgns.models import Simulator, count_parameters
-from rgns.training.module import load_simulator
+from rgns.training.module import CheckpointError, load_simulator
 from rgns.training.rollouts import forward_rollout
+
+log = logging.getLogger(__name__)
 
 # display names of the trained simulators, by class name (labels only: models are built by _target_)
 DISPLAY_NAMES = {"GNS": "GNS", "RGNS": "R-GNS", "SepGNS": "Sep-GNS"}
@@ -54,22 +57,53 @@ def find_checkpoints(ckpt_path: str | None = None, ckpt_paths=(), checkpoints_di
                      checkpoint: str = "last") -> list[Path]:
     """Checkpoint files: ``ckpt_path``, ``ckpt_paths`` and, under ``checkpoints_dir``, every
     ``checkpoints/last.ckpt`` (``checkpoint=last``) or newest ``checkpoints/best*.ckpt``
-    (``checkpoint=best``), sorted by path."""
+    (``checkpoint=best``), sorted by path. A run folder without the one asked for is named in a
+    warning and left out; when none has it, the error says what the folders hold."""
+    if checkpoint not in ("last", "best"):
+        raise ValueError(f"checkpoint={checkpoint!r}: 'last' (checkpoints/last.ckpt) or 'best' (the newest "
+                         "checkpoints/best*.ckpt), for each run under checkpoints_dir")
     paths = [Path(p) for p in ([ckpt_path] if ckpt_path else []) + list(ckpt_paths or [])]
     if checkpoints_dir:
+        if not Path(checkpoints_dir).is_dir():
+            raise FileNotFoundError(f"checkpoints_dir={checkpoints_dir}: no such folder")
         pattern = "last.ckpt" if checkpoint == "last" else "best*.ckpt"
         folders = sorted({p.parent for p in Path(checkpoints_dir).rglob("checkpoints/*.ckpt")})
+        if not folders:
+            raise FileNotFoundError(f"{checkpoints_dir}: no checkpoints/*.ckpt under it")
+        lacking = []
         for folder in folders:
             found = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime)
             paths.extend(found[-1:])
-        if not folders:
-            raise FileNotFoundError(f"{checkpoints_dir}: no checkpoints/*.ckpt under it")
+            if not found:
+                lacking.append(f"{folder} holds only {', '.join(sorted(p.name for p in folder.glob('*.ckpt')))}")
+        other = "last" if checkpoint == "best" else "best"
+        if len(lacking) == len(folders):
+            raise FileNotFoundError(f"checkpoint={checkpoint}: no {pattern} under {checkpoints_dir}: "
+                                    f"{'; '.join(lacking)}. Pass checkpoint={other} or ckpt_path=<one of those>")
+        for item in lacking:
+            log.warning("checkpoint=%s: no %s there, so that run is left out: %s", checkpoint, pattern, item)
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
         raise FileNotFoundError(f"checkpoint(s) not found: {', '.join(missing)}")
     if not paths:
         raise ValueError("no checkpoint given: set ckpt_path=..., ckpt_paths=[...] or checkpoints_dir=...")
     return list(dict.fromkeys(p.resolve() for p in paths))
+
+
+def check_fits(model: Simulator, source: str, metadata: dict, particle_types, where: str) -> None:
+    """Refuse a trained model on data it cannot simulate: another dimension than it was trained
+    in, or particle types it never saw in training (``model.particle_types``; unknown in
+    checkpoints older than that record, then only the dimension is checked).
+
+    Raises :class:`~rgns.training.module.CheckpointError` naming the checkpoint ``source``, the
+    data ``where`` and what differs."""
+    if int(metadata["dim"]) != model.dim:
+        raise CheckpointError(f"{source}: trained on {model.dim}D data, but {where} is {metadata['dim']}D "
+                              f"(metadata 'dim'): evaluate it on a {model.dim}D dataset")
+    unseen = sorted(set(particle_types) - set(model.particle_types)) if model.particle_types is not None else []
+    if unseen:
+        raise CheckpointError(f"{source}: trained on particle types {model.particle_types}, but {where} also holds "
+                              f"type(s) {unseen}, which it never saw in training")
 
 
 def describe(model_config: dict) -> str:
@@ -116,16 +150,29 @@ def _run_seed(checkpoint: Path) -> int | None:
 
 
 def load_checkpoints(paths: list[Path], device: str = "cpu", pretrained=()) -> list[Method]:
-    """Methods of checkpoint files; those in ``pretrained`` are labelled ``<model> pretrained``."""
-    methods = []
+    """Methods of checkpoint files; those in ``pretrained`` are labelled ``<model> pretrained``.
+
+    Of several files, one that cannot be read is named in a warning and left out, and the others
+    are loaded; a single file that cannot be read, or none of several, is an error
+    (:class:`~rgns.training.module.CheckpointError`)."""
+    methods, unreadable = [], []
     pretrained = {Path(p).resolve() for p in pretrained}
     for path in paths:
-        model, extras = load_simulator(str(path), map_location=device)
+        try:
+            model, extras = load_simulator(str(path), map_location=device)
+        except CheckpointError as err:
+            if len(paths) == 1:
+                raise
+            log.warning("%s. Left out of this evaluation; the other checkpoints are evaluated", err)
+            unreadable.append(str(err))
+            continue
         config = dict(extras["hparams"]["model"])
         label = describe(config) + (" pretrained" if Path(path).resolve() in pretrained else "")
         methods.append(Method(label, model, extras["data_root"], str(path), dict(
             model=config, global_step=extras["global_step"], overrides=_run_overrides(path),
             seed=_run_seed(path), base_label=label)))
+    if paths and not methods:
+        raise CheckpointError("no checkpoint could be read:\n" + "\n".join(unreadable))
     _disambiguate(methods)
     return methods
 

@@ -153,6 +153,12 @@ def efficiency_tables(results: dict) -> list[str]:
     return out
 
 
+def dropped_horizons(settings: dict) -> list[str]:
+    """A line naming the horizons asked for that did not fit the trajectories, if any."""
+    dropped = settings.get("dropped_horizons") or {}
+    return ["", f"Not run: K = {', '.join(map(str, dropped))}, {next(iter(dropped.values()))}."] if dropped else []
+
+
 def inverse_tables(results: dict) -> list[str]:
     out = []
     for name, d in results["datasets"].items():
@@ -178,7 +184,8 @@ def inverse_tables(results: dict) -> list[str]:
                 f"Max stable steps: the largest K tried ({', '.join(horizons)}) up to which the consistency MSE stays "
                 f"under {s['threshold']:g} without divergence (≥: every K tried). Inference time: K x the inverse "
                 f"ms/step of the efficiency table. For K ≤ k = {s['history']}, frame {s['start']} is in the given "
-                "state's velocity history, so its inverse MSE is exactly 0. Forward-only methods are not listed.", "",
+                "state's velocity history, so its inverse MSE is exactly 0. Forward-only methods are not listed.",
+                *dropped_horizons(s), "",
                 table(["Methods", *labels], rows, best_lowest={0, 1, 2}), "",
                 f"### Consistency and inverse MSE (1e-3) against the inverse steps K on {name}", "",
                 table(["K", *(f"Consistency {m}" for m in labels), *(f"Inverse {m}" for m in labels)], by_k)]
@@ -211,7 +218,7 @@ def optimisation_tables(results: dict) -> list[str]:
                 f"{s['trajectories']} trajectory, {s['particles']} particles, from frame {s['start']}. Optimisers stop by "
                 f"one rule for all: {s['rule']}. Consistency: K forward frames of each method's own forward simulator "
                 f"from the initial state it found, against the truth at frame {s['start']} + K; stable while under "
-                f"{s['threshold']:g} and not failed.", "",
+                f"{s['threshold']:g} and not failed.", *dropped_horizons(s), "",
                 table(["Methods", *labels], rows, best_lowest={0, 1}), "",
                 table(["K", *(f"Consistency (1e-3) {m}" for m in labels), *(f"Status {m}" for m in labels)], by_k), "",
                 f"Time ratios at K = {K} (optimisation / feed-forward, one run):", "",

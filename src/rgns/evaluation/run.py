@@ -14,8 +14,9 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from rgns.data.contract import DatasetError
 from rgns.evaluation import plots, report
-from rgns.evaluation.methods import (build_baselines, find_checkpoints, load_checkpoints, seed_groups,
+from rgns.evaluation.methods import (build_baselines, check_fits, find_checkpoints, load_checkpoints, seed_groups,
                                      without_hard_walls)
 from rgns.evaluation.tasks import Dataset
 
@@ -100,6 +101,17 @@ def evaluate(cfg: DictConfig) -> dict:
         if root is None:
             raise ValueError(f"{method.source}: the checkpoint does not name its dataset; set data_root=...")
         by_root.setdefault(str(Path(root).resolve()), []).append(method)
+    datasets = {}  # every dataset checked, and every checkpoint against its dataset, before any task runs
+    for root, trained in by_root.items():
+        history = max(m.model.history for m in trained)  # t0 leaves every model its history
+        dataset = datasets[root] = Dataset.load(root, cfg.split, cfg.trajectories, history, cfg.start, cfg.device)
+        where = str(Path(root) / f"{cfg.split}.h5")
+        short = [i for i, (position, _) in enumerate(dataset.trajectories) if len(position) < dataset.start + 2]
+        if short:
+            raise DatasetError(f"{where}: trajectories {short} have no frame after t0 = {dataset.start} (start, at "
+                               f"least k = {history}) to roll out to")
+        for method in trained:
+            check_fits(method.model, method.source, dataset.metadata, dataset.particle_types, where)
 
     results = dict(command=command_line(), date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                    config=OmegaConf.to_container(cfg, resolve=True),
@@ -108,8 +120,7 @@ def evaluate(cfg: DictConfig) -> dict:
                    methods={m.label: dict(source=m.source, **m.info) for m in methods}, datasets={})
     examples = {}
     for root, trained in by_root.items():
-        history = trained[0].model.history
-        dataset = Dataset.load(root, cfg.split, cfg.trajectories, history, cfg.start, cfg.device)
+        dataset, history = datasets[root], trained[0].model.history
         if dataset.name in results["datasets"]:  # two folders of one name (paths in sections["root"])
             dataset.name = f"{dataset.name}_{len(results['datasets']) + 1}"
         compared = trained + build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)

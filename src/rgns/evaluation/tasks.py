@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import gc
+import logging
 import math
 import multiprocessing
 import os
@@ -33,10 +34,12 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from rgns.data.contract import KINEMATIC, open_split, read_metadata
+from rgns.data.contract import KINEMATIC, DatasetError, check_dataset, open_split
 from rgns.evaluation.metrics import divergence_step, mmd, mse_per_step, optimal_transport
 from rgns.models import State
 from rgns.training.rollouts import inverse_then_forward
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -49,17 +52,26 @@ class Dataset:
     trajectories: list[tuple[Tensor, Tensor]]  # (position [T, N, D], particle_type [N]): the first of the split
     start: int  # t0: the first frame a rollout starts from (needs k frames of history before it)
     split: str = "test"
+    particle_types: list[int] | None = None  # every type in the split (None: not read)
 
     @classmethod
     def load(cls, root: str, split: str, trajectories: int | None, history: int, start: int | None,
              device: str = "cpu") -> "Dataset":
+        """The first ``trajectories`` of ``split`` (``None``: all), after checking the metadata and
+        every trajectory of the split (:func:`~rgns.data.contract.check_dataset`)."""
+        if trajectories is not None and trajectories < 1:
+            raise ValueError(f"trajectories={trajectories}: evaluate at least 1 trajectory (null: all of the split)")
         if start is not None and start < history:
             raise ValueError(f"start={start}: a rollout needs the {history} frames of history before it (start >= {history})")
+        start = history if start is None else start
+        contents = check_dataset(root, splits=(split,))
+        if not contents.shapes[split]:
+            raise DatasetError(f"{Path(root) / f'{split}.h5'}: no trajectories to evaluate")
         with open_split(root, split) as data:
             count = len(data) if trajectories is None else min(trajectories, len(data))
             loaded = [(torch.from_numpy(p).to(device), torch.from_numpy(t).to(device))
                       for p, t in (data[i] for i in range(count))]
-        return cls(Path(root).name, str(root), read_metadata(root), loaded, history if start is None else start, split)
+        return cls(Path(root).name, str(root), contents.metadata, loaded, start, split, contents.particle_types[split])
 
     @property
     def bounds(self) -> Tensor:
@@ -118,6 +130,8 @@ class ForwardRollout:
 
     def __init__(self, steps: int | None = 300, distribution_steps=(1, 10, 100, 300), distribution_particles: int = 1000,
                  divergence: dict | None = None, seed: int = 0):
+        if steps is not None and steps < 1:
+            raise ValueError(f"task.forward.steps={steps}: roll out at least 1 step (null: to the end of each trajectory)")
         self.steps, self.distribution_steps = steps, sorted(set(distribution_steps))
         self.distribution_particles, self.seed = distribution_particles, seed
         self.divergence = Divergence(**(divergence or {}))
@@ -206,8 +220,9 @@ class InverseConsistency:
     """Inverse inference and inverse-then-forward consistency for each horizon K.
 
     Args:
-        horizons: the K tried (the paper: 1 to 100); those longer than a trajectory allows
-            (``t0 + K`` past its last frame) are dropped.
+        horizons: the K tried (the paper: 1 to 100); those longer than the trajectories allow
+            (``t0 + K`` past the last frame) are dropped with a warning and listed in the results'
+            settings (``dropped_horizons``) and the report.
         threshold: a horizon is stable while its consistency MSE stays under this and neither
             the inferred nor the re-simulated trajectory diverges.
         table_horizon: the K of the comparison table (the paper: 40); capped by the horizons run.
@@ -218,15 +233,23 @@ class InverseConsistency:
 
     def __init__(self, horizons=(1, 2, 5, 10, 20, 40, 60, 80, 100), threshold: float = 1e-3,
                  table_horizon: int = 40, divergence: dict | None = None):
+        if not horizons or min(horizons) < 1:
+            raise ValueError(f"task.inverse.horizons={list(horizons)}: each K must be at least 1")
         self.horizons, self.threshold, self.table_horizon = sorted(set(horizons)), threshold, table_horizon
         self.divergence = Divergence(**(divergence or {}))
 
     def __call__(self, methods, dataset: Dataset) -> tuple[dict, dict]:
         start = dataset.start
-        longest = max(len(p) for p, _ in dataset.trajectories) - 1 - start
+        frames = max(len(p) for p, _ in dataset.trajectories)
+        longest = frames - 1 - start
         horizons = [K for K in self.horizons if K <= longest]
         if not horizons:
             raise ValueError(f"{dataset.name}: trajectories too short for any inverse horizon from frame {start}")
+        dropped = {K: f"longer than the {longest} frames after t0 = {start} of the longest {dataset.split} "
+                      f"trajectory ({frames} frames)" for K in self.horizons if K > longest}
+        if dropped:
+            log.warning("%s: inverse horizons K = %s dropped: %s", dataset.name, ", ".join(map(str, dropped)),
+                        next(iter(dropped.values())))
         bidirectional = [m for m in methods if m.bidirectional]
         work = sum(K <= len(p) - 1 - start for p, _ in dataset.trajectories for K in horizons) * len(bidirectional)
         bar = progress(work, f"inverse horizons ({dataset.name})")
@@ -258,8 +281,8 @@ class InverseConsistency:
             results[method.label] = dict(horizons=per_horizon, **self._stability(per_horizon))
         bar.close()
         table_horizon = max([K for K in horizons if K <= self.table_horizon] or horizons[:1])
-        settings = dict(start=start, horizons=horizons, threshold=self.threshold, table_horizon=table_horizon,
-                        history=max((m.model.history for m in bidirectional), default=None),
+        settings = dict(start=start, horizons=horizons, dropped_horizons=dropped, threshold=self.threshold,
+                        table_horizon=table_horizon, history=max((m.model.history for m in bidirectional), default=None),
                         trajectories=len(dataset.trajectories), divergence=vars(self.divergence))
         return dict(settings=settings, methods=results), examples
 

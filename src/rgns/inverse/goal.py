@@ -362,6 +362,8 @@ class GoalShaping:
     name = "goal"
 
     def __init__(self, out_dir: str, steps: int = 20, optimiser: dict | None = None, **shape):
+        if steps < 1:
+            raise ValueError(f"goal.steps={steps}: K, the inverse steps from the target, must be at least 1")
         self.out_dir, self.steps, self.optimiser = out_dir, steps, optimiser
         self.spec = GoalSpec(**shape)
 
@@ -380,7 +382,8 @@ def _label(model, extras: dict, path: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from rgns.data.contract import open_split, read_metadata
+    from rgns.data.contract import check_dataset, open_split
+    from rgns.evaluation.methods import check_fits
     from rgns.training.module import load_simulator
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -399,17 +402,23 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--iterations", type=int, default=30, help="SPH + Adam iteration cap")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
+    if args.steps < 1 or args.iterations < 1:
+        parser.error(f"--steps {args.steps} and --iterations {args.iterations}: each must be at least 1")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
 
     models, root = {}, args.data_root
     for path in args.ckpt:
         model, extras = load_simulator(path)
-        models[_label(model, extras, path)] = model
+        label = _label(model, extras, path)
+        models[label if label not in models else f"{label} {Path(path).name}"] = model  # two of one run stay apart
         root = root or extras["data_root"]
     if root is None:
         raise SystemExit("the checkpoint does not name its dataset: pass --data-root")
-    metadata = read_metadata(root)
+    contents = check_dataset(root, splits=("train",))
+    for path, model in zip(args.ckpt, models.values()):
+        check_fits(model, path, contents.metadata, contents.particle_types["train"], str(Path(root) / "train.h5"))
+    metadata = contents.metadata
     with open_split(root, "train") as data:
         frame = data[0][0][0]
     spec = GoalSpec(text=args.text, mask=args.mask, points=args.points, height=args.height, depth=args.depth,

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from rgns.data.contract import KINEMATIC, open_split, read_metadata
+from rgns.data.contract import KINEMATIC, SPLITS, DatasetError, check_dataset, open_split, read_metadata
 from rgns.inverse.feedforward import feed_forward_inverse, forward_stability, inverse_stability
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import LearnedSimulator, SPHSimulator, sph_for_dataset
@@ -106,10 +106,18 @@ def compare_inverse(models: dict, metadata: dict, trajectories: list[tuple[Tenso
     feed_forward = {label: m for label, m in models.items() if m.bidirectional}
     history = next(iter(models.values())).history if models else 5
     start = history if start is None else start
+    if not trajectories:
+        raise ValueError("compare_inverse: no trajectories to compare on")
+    if not horizons or min(horizons) < 1:
+        raise ValueError(f"horizons={list(horizons)}: each K must be at least 1")
     longest = min(len(p) for p, _ in trajectories) - 1 - start
-    horizons = sorted(K for K in set(horizons) if 1 <= K <= longest)
+    dropped = {K: f"longer than the {longest} frames after t0 = {start} of the shortest trajectory "
+                  f"({longest + 1 + start} frames)" for K in sorted(set(horizons)) if K > longest}
+    horizons = sorted(K for K in set(horizons) if K <= longest)
     if not horizons:
         raise ValueError(f"no horizon fits trajectories of {longest + 1 + start} frames from t0 = {start}")
+    if dropped:
+        log.warning("inverse horizons K = %s dropped: %s", ", ".join(map(str, dropped)), next(iter(dropped.values())))
     rows: dict[str, dict[int, list[dict]]] = {}
     budget: dict[str, list[dict]] = {}
 
@@ -193,7 +201,8 @@ def compare_inverse(models: dict, metadata: dict, trajectories: list[tuple[Tenso
             if at and at["seconds"]:
                 budget_ratios[f"{slow} ({done} of {budget_iterations} iterations ran) / {fast}"] = seconds / at["seconds"]
                 budget_ratios[f"{slow}, one Adam iteration / {fast}"] = per_iteration / at["seconds"]
-    results = dict(settings=dict(start=start, horizons=horizons, threshold=threshold, table_horizon=table_horizon,
+    results = dict(settings=dict(start=start, horizons=horizons, dropped_horizons=dropped, threshold=threshold,
+                                 table_horizon=table_horizon,
                                  trajectories=len(trajectories), particles=[int(p.shape[1]) for p, _ in trajectories],
                                  rule=vars(stopping), optimisers=optimisers, threads=torch.get_num_threads()),
                    methods=methods, time_ratio_at_table_horizon=ratios)
@@ -352,15 +361,17 @@ def main(argv: list[str] | None = None) -> dict:
     """``python -m rgns.inverse.tasks --ckpt A.ckpt [--ckpt B.ckpt] --out DIR [--horizons 1 5 10 20 40]``"""
     import argparse
 
+    from rgns.evaluation.methods import check_fits
     from rgns.training.module import load_simulator
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ckpt", action="append", required=True)
     parser.add_argument("--label", action="append", help="a label per --ckpt (default: the model class)")
     parser.add_argument("--data-root")
-    parser.add_argument("--split", default="test")
+    parser.add_argument("--split", default="test", choices=SPLITS)
     parser.add_argument("--trajectories", type=int, default=1)
-    parser.add_argument("--horizons", type=int, nargs="+", default=[1, 5, 10, 20, 40])
+    parser.add_argument("--horizons", type=int, nargs="+", default=[1, 5, 10, 20, 40],
+                        help="the K tried; each must fit the trajectories (a longer one is refused)")
     parser.add_argument("--optimisers", nargs="*", default=["sph"],
                         help="sph, mpm, learned (through the first model); kind:K,K to run only those horizons")
     parser.add_argument("--iterations", type=int, default=50, help="the stopping rule's iteration cap")
@@ -370,6 +381,25 @@ def main(argv: list[str] | None = None) -> dict:
                         help="also time each optimiser for exactly this many iterations at the table horizon")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
+    if args.label and len(args.label) != len(args.ckpt):
+        parser.error(f"{len(args.label)} --label for {len(args.ckpt)} --ckpt: give one label per checkpoint, or none")
+    if min(args.horizons) < 1 or args.trajectories < 1 or args.iterations < 1:
+        parser.error(f"--horizons {' '.join(map(str, args.horizons))}, --trajectories {args.trajectories} and "
+                     f"--iterations {args.iterations}: each must be at least 1")
+    if args.threshold <= 0 or args.stability_steps < 0 or args.budget_iterations < 0:
+        parser.error("--threshold must be > 0, --stability-steps and --budget-iterations >= 0")
+    optimisers = {}
+    for item in args.optimisers:  # kind or kind:K,K,... (only those horizons, e.g. mpm:1,5)
+        kind, _, ks = item.partition(":")
+        if kind not in ("sph", "mpm", "learned"):
+            parser.error(f"--optimisers {item}: the kinds are sph, mpm and learned (kind:K,K runs only those K)")
+        try:
+            optimisers[kind] = {"horizons": [int(k) for k in ks.split(",")]} if ks else {}
+        except ValueError:
+            parser.error(f"--optimisers {item}: after '{kind}:' come horizons K separated by commas, e.g. {kind}:1,5")
+        unasked = sorted(set(optimisers[kind].get("horizons", [])) - set(args.horizons))
+        if unasked:
+            parser.error(f"--optimisers {item}: K = {unasked} not among --horizons {' '.join(map(str, args.horizons))}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(1)
     names = {"RGNS": "R-GNS", "SepGNS": "Sep-GNS", "GNS": "GNS"}
@@ -377,12 +407,25 @@ def main(argv: list[str] | None = None) -> dict:
     for i, path in enumerate(args.ckpt):
         model, extras = load_simulator(path)
         label = args.label[i] if args.label else names.get(type(model).__name__, type(model).__name__)
+        if label in models:
+            parser.error(f"--ckpt {path}: a second checkpoint labelled {label!r}; give each one a --label")
         models[label] = model
         root = root or extras["data_root"]
-    optimisers = {}
-    for item in args.optimisers:  # kind or kind:K,K,... (only those horizons, e.g. mpm:1,5)
-        kind, _, ks = item.partition(":")
-        optimisers[kind] = {"horizons": [int(k) for k in ks.split(",")]} if ks else {}
+    if root is None:
+        parser.error("the checkpoint does not name its dataset: pass --data-root")
+    history = next(iter(models.values())).history  # t0 = k, as compare_inverse
+    contents = check_dataset(root, min_frames=history + 2, splits=(args.split,))
+    where = Path(root) / f"{args.split}.h5"
+    for path, model in zip(args.ckpt, models.values()):
+        check_fits(model, path, contents.metadata, contents.particle_types[args.split], str(where))
+    if not contents.shapes[args.split]:
+        raise DatasetError(f"{where}: no trajectories to compare on")
+    frames = min(shape[0] for shape in contents.shapes[args.split][: args.trajectories])
+    too_long = [K for K in args.horizons if K > frames - 1 - history]
+    if too_long:  # asked for by name: refused, not dropped
+        parser.error(f"--horizons {' '.join(map(str, too_long))}: the first {args.trajectories} {args.split} "
+                     f"trajectories of {root} have {frames} frames, so from t0 = k = {history} the longest "
+                     f"horizon is {frames - 1 - history}")
     results = run_inverse_comparison(models, root, args.horizons, args.out, split=args.split,
                                      trajectories=args.trajectories, optimisers=optimisers,
                                      rule=dict(max_iterations=args.iterations), threshold=args.threshold,

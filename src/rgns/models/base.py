@@ -57,7 +57,10 @@ class Simulator(nn.Module):
 
     Args:
         metadata (dict): the dataset's ``metadata.json`` (``bounds``, ``dim``,
-            ``default_connectivity_radius``, ``vel_mean``, ``vel_std``, ``acc_mean``, ``acc_std``).
+            ``default_connectivity_radius``, ``vel_mean``, ``vel_std``, ``acc_mean``, ``acc_std``),
+            and optionally ``particle_types``, those of the training data (the datamodule adds
+            them): kept as :attr:`particle_types` (``None``: unknown) so that data with types the
+            model never saw can be refused.
         history (int, optional): velocities per state, k. (default: :obj:`5`)
         noise_std (float, optional): training noise, added in quadrature to the stds as in GNS.
             (default: :obj:`6.7e-4`)
@@ -80,6 +83,7 @@ class Simulator(nn.Module):
         self.hard_walls = bool(hard_walls)
         self.dim = int(metadata["dim"])
         self.radius = float(metadata["default_connectivity_radius"])
+        self.particle_types = metadata.get("particle_types")  # of the training data; None: unknown
 
         def stat(key: str) -> Tensor:
             return torch.as_tensor(metadata[key], dtype=torch.float32)

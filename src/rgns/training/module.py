@@ -247,10 +247,32 @@ class SimulatorModule(L.LightningModule):
         checkpoint["data_root"] = None if root is None else str(Path(root).resolve())
 
 
+class CheckpointError(ValueError):
+    """A file is not a readable rgns checkpoint, or does not fit the data it is used on; the
+    message names the file and what is wrong."""
+
+
 def load_simulator(path: str, map_location: str = "cpu"):
-    """The trained simulator (a plain ``nn.Module``, eval mode) and its checkpoint's extras."""
-    module = SimulatorModule.load_from_checkpoint(path, map_location=map_location)
-    extras = torch.load(path, map_location="cpu", weights_only=False)
+    """The trained simulator (a plain ``nn.Module``, eval mode) and its checkpoint's extras.
+
+    Raises :class:`CheckpointError` naming the file when it is not a readable checkpoint
+    (truncated, not a PyTorch file) or not one of a :class:`SimulatorModule`."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: checkpoint not found")
+    try:
+        extras = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # whatever torch's readers meet: OSError, EOFError, KeyError, UnpicklingError, ...
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err}); the file may be "
+                              "truncated (an interrupted write or copy) or not a checkpoint at all") from None
+    hparams = extras.get("hyper_parameters") if isinstance(extras, dict) else None
+    if not isinstance(hparams, dict) or not {"model", "metadata"} <= set(hparams) or "state_dict" not in extras:
+        raise CheckpointError(f"{path}: a PyTorch file, but not an rgns training checkpoint (it needs a state_dict "
+                              "and hyper_parameters with 'model' and 'metadata', as train.py writes)")
+    try:
+        module = SimulatorModule.load_from_checkpoint(path, map_location=map_location)
+    except Exception as err:
+        raise CheckpointError(f"{path}: an rgns checkpoint this code cannot rebuild its model from "
+                              f"({type(err).__name__}: {err})") from err
     return module.model.eval(), {
         "data_root": extras.get("data_root"),
         "global_step": extras.get("global_step"),
