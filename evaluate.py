@@ -10,6 +10,7 @@ import hydra
 from omegaconf import DictConfig
 
 from rgns.evaluation.run import evaluate
+from rgns.runs import register_resolvers
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
@@ -20,4 +21,5 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
+    register_resolvers()  # ${rgns_fresh:...}: an output folder of its own
     main()

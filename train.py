@@ -1,12 +1,19 @@
 """Train a simulator: ``python train.py [overrides]``; sweeps with ``-m``, e.g.
-``python train.py -m loss=dl1,dl2,dl3,dl4``. Returns the best validation loss (for sweepers)."""
+``python train.py -m loss=dl1,dl2,dl3,dl4``. Returns the best validation loss (for sweepers).
+
+Every run ends with ``checkpoints/last.ckpt``; one stopped by SIGTERM or Ctrl-C finishes its step,
+saves it, says where it is and exits with 143 / 130 (rgns.training.checkpointing)."""
 from __future__ import annotations
+
+import sys
 
 import hydra
 import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from rgns.runs import register_resolvers
+from rgns.training.checkpointing import LastCheckpoint, StopOnSignal
 from rgns.training.ddp import ddp_job
 
 
@@ -24,10 +31,17 @@ def main(cfg: DictConfig) -> float | None:
     )
     with ddp_job():
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.resume)
+    stopped_by = next((c.received for c in trainer.callbacks if isinstance(c, StopOnSignal) and c.received), None)
+    if stopped_by is not None:
+        last = next((c.path(trainer) for c in trainer.callbacks if isinstance(c, LastCheckpoint)), None)
+        print(f"stopped by {stopped_by.name} at step {trainer.global_step}; latest state: {last} "
+              f"(continue with resume={last})", file=sys.stderr, flush=True)
+        sys.exit(128 + stopped_by.value)
 
     best = trainer.checkpoint_callback.best_model_score
     return None if best is None else float(best)
 
 
 if __name__ == "__main__":
+    register_resolvers()  # ${rgns_fresh:...}: a run folder of its own
     main()
