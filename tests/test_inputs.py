@@ -140,6 +140,14 @@ def test_every_split_is_checked_before_the_first_training_step(tiny_dataset, cas
         ParticleDataModule(str(tiny_dataset)).prepare_data()
 
 
+def test_an_empty_valid_split_is_said_not_silent(tiny_dataset, caplog):
+    write_split(tiny_dataset / "valid.h5", [])
+    with caplog.at_level(logging.WARNING):
+        ParticleDataModule(str(tiny_dataset)).prepare_data()
+    assert any(f"{tiny_dataset / 'valid.h5'}: no trajectories: training runs without validation" in r.getMessage()
+               for r in caplog.records)
+
+
 def test_training_windows_longer_than_the_trajectories_are_refused_up_front(tiny_dataset):
     """data.lead=15 (pushforward) needs 5 + 1 + 15 + 1 frames; the trajectories have 20."""
     with pytest.raises(DatasetError, match=naming("train.h5", "20 frames, fewer than the 22")):

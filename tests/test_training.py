@@ -67,9 +67,9 @@ def test_loss_sweep_writes_one_run_per_design(dataset, tmp_path):
 
 def test_default_data_is_generated_on_first_use(tmp_path):
     """`python train.py` on a fresh clone: the DataModule makes the default dataset inside the
-    running Hydra app (the scene config is composed with Hydra too)."""
-    root = tmp_path / "waterdrop"
-    train(tmp_path, f"data.root={root}", "+data.make.num_trajectories=1", "+data.make.num_frames=12",
+    running Hydra app (the scene config is composed with Hydra too), at its data.make_root."""
+    root = tmp_path / "datasets" / "waterdrop40_small"  # the default root, from the run's folder
+    train(tmp_path, "+data.make.num_trajectories=1", "+data.make.num_frames=12",
           "data.make.workers=1", "trainer=cpu", "trainer.max_steps=2", "trainer.val_check_interval=2",
           "module.val_rollout_steps=3", "module.val_consistency_steps=2", *TINY)
     metadata = json.loads((root / "metadata.json").read_text())

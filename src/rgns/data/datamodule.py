@@ -71,14 +71,14 @@ class ParticleDataModule(L.LightningDataModule):
         self.check()
 
     def _make(self) -> None:
-        how = (f"Make one with `python -m rgns.data.generate scene=waterdrop out_dir={self.root}` or convert "
+        how = (f"make one with `python -m rgns.data.generate scene=waterdrop out_dir={self.root}` or convert "
                f"DeepMind's files with `python -m rgns.data.convert SRC_DIR {self.root}`")
         if self.make is None:
-            raise DatasetError(f"{self.root}: no dataset here (no metadata.json). {how}")
+            raise DatasetError(f"{self.root}: no dataset here (no metadata.json); {how}")
         if self.make_root is not None and self.make_root.resolve() != self.root.resolve():
             raise DatasetError(
                 f"{self.root}: no dataset here (no metadata.json), and only the default dataset, {self.make_root}, is "
-                f"generated on first use (data.make_root). Check data.root for a typo, or: {how}"
+                f"generated on first use (data.make_root). Check data.root for a typo, or {how}"
             )
         self.make(out_dir=str(self.root))
 
