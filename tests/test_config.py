@@ -120,6 +120,15 @@ def test_main_job_runs_compose_and_instantiate(tmp_path, tiny_dataset):
         assert cfg.trainer.enable_progress_bar is False and cfg.model.hard_walls is True
         trainer = instantiate(cfg.trainer, logger=False, callbacks=[])
         assert trainer.max_steps == int(overrides[2].split("=")[1])
-        # last.ckpt is written at validations: a budget between two would lose its last steps
+        # the evaluated checkpoint is chosen at validations: steps after the last one would never count
         assert trainer.max_steps % cfg.trainer.val_check_interval == 0, overrides
         build_module(cfg, read_metadata(tiny_dataset))
+
+
+def test_training_benchmark_measures_the_main_jobs_models():
+    """`python -m rgns.bench training --main` times each model with scripts/main.sh's model overrides."""
+    from rgns.bench.training import MAIN_OVERRIDES
+
+    for overrides in main_job_runs():
+        model = overrides[1].split("=")[1]
+        assert MAIN_OVERRIDES[model] == [o for o in overrides[5:] if o.startswith("model.")], model

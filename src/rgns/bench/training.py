@@ -13,8 +13,10 @@ The targets are ratios from this one run: data loading well above the step rate,
 Trainer at least 0.8 of the bare step rate.
 
 ``python -m rgns.bench training --main [--models rgns gns sep_gns]`` measures instead the main
-job's preset (``experiment=main``) on its dataset (``datasets/waterdrop40_main``, generated if
-missing): the bare training step of each model on real windows, one thread, median of repeats.
+job's preset (``experiment=main``, with ``scripts/main.sh``'s overrides) on its dataset
+(``datasets/waterdrop40_main``, generated if missing): the bare training step of each model on real
+windows, one thread, median of repeats, beside the step as it was before (R-GNS's memory-saving
+backward, a per-parameter Adam), timed in alternation; the ratio is the speed-up.
 """
 from __future__ import annotations
 
@@ -65,8 +67,16 @@ class StepTimer(L.Callback):
             self.end = time.perf_counter()
 
 
+# scripts/main.sh's per-model overrides, and what each was before the faster training step
+MAIN_OVERRIDES = {"rgns": ["model.memory_saving=false"], "gns": ["model.layers=4"], "sep_gns": ["model.layers=4"]}
+BEFORE = {"rgns": ["model.memory_saving=true"]}
+
+
 def main_preset(models: list[str], steps: int, overrides: list[str]) -> dict:
-    """Bare training steps per second of the main preset's models on its dataset."""
+    """Bare training steps per second of the main preset's models on its dataset, as
+    ``scripts/main.sh`` trains them (its overrides, the configured fused Adam) and as they were
+    before (R-GNS's memory-saving backward, a per-parameter Adam), the two timed in alternation on
+    the same batches so that the ratio is measured side by side."""
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
@@ -75,31 +85,37 @@ def main_preset(models: list[str], steps: int, overrides: list[str]) -> dict:
     torch.set_num_threads(1)
     result = {}
     for name in models:
-        with initialize_config_dir(str(config_dir()), version_base="1.3"):
-            cfg = compose("train", overrides=["experiment=main", f"model={name}", "data.num_workers=0", *overrides],
-                          return_hydra_config=False)
-        datamodule = instantiate(cfg.data)
-        datamodule.prepare_data()
-        datamodule.setup("fit")
-        loader = iter(datamodule.train_dataloader())
-        batches = [next(loader) for _ in range(steps + 5)]
-        L.seed_everything(0)
-        module = instantiate(cfg.module, model=cfg.model, loss=cfg.loss, metadata=datamodule.metadata, _recursive_=False)
-        adam = torch.optim.Adam(module.parameters(), lr=1e-4)
-        times = []
-        for i, batch in enumerate(batches):
-            start = time.perf_counter()
-            adam.zero_grad(set_to_none=True)
-            module._losses(batch)["loss"].backward()
-            adam.step()
-            if i >= 5:
-                times.append(time.perf_counter() - start)
+        variants = {}
+        for variant, extra in (("main", []), ("before", [*BEFORE.get(name, []), "module.optimizer.fused=false"])):
+            with initialize_config_dir(str(config_dir()), version_base="1.3"):
+                cfg = compose("train", overrides=["experiment=main", f"model={name}", "data.num_workers=0",
+                                                  *MAIN_OVERRIDES.get(name, []), *extra, *overrides])
+            if not variants:
+                datamodule = instantiate(cfg.data)
+                datamodule.prepare_data()
+                datamodule.setup("fit")
+                loader = iter(datamodule.train_dataloader())
+                batches = [next(loader) for _ in range(steps + 5)]
+            L.seed_everything(0)
+            module = instantiate(cfg.module, model=cfg.model, loss=cfg.loss, metadata=datamodule.metadata,
+                                 _recursive_=False)
+            variants[variant] = (module, instantiate(cfg.module.optimizer)(module.parameters()), [])
+        for i, batch in enumerate(batches):  # alternate: both variants see the same load
+            for module, optimizer, times in variants.values():
+                start = time.perf_counter()
+                optimizer.zero_grad(set_to_none=True)
+                module._losses(batch)["loss"].backward()
+                optimizer.step()
+                if i >= 5:
+                    times.append(time.perf_counter() - start)
+        ms = {variant: 1e3 * float(np.median(times)) for variant, (_, _, times) in variants.items()}
         nodes = float(np.mean([b.num_nodes for b in batches]))
         edges = float(np.mean([b.edge_index.shape[1] for b in batches]))
-        result[name] = dict(ms_per_step=1e3 * float(np.median(times)), steps_per_s=1 / float(np.median(times)),
-                            nodes_per_batch=nodes, edges_per_batch=edges)
-        print(f"{name:<10} {result[name]['ms_per_step']:8.1f} ms/step  {result[name]['steps_per_s']:7.1f} steps/s  "
-              f"({nodes:.0f} nodes, {edges:.0f} edges per batch of {datamodule.batch_size})", flush=True)
+        result[name] = dict(ms_per_step=ms["main"], steps_per_s=1e3 / ms["main"], ms_per_step_before=ms["before"],
+                            speedup=ms["before"] / ms["main"], nodes_per_batch=nodes, edges_per_batch=edges)
+        print(f"{name:<8} {ms['main']:7.1f} ms/step ({1e3 / ms['main']:5.1f} steps/s), before {ms['before']:7.1f} ms: "
+              f"{result[name]['speedup']:.2f}x  ({nodes:.0f} nodes, {edges:.0f} edges per batch of "
+              f"{datamodule.batch_size})", flush=True)
     return result
 
 
