@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
 from torch import Tensor
 
 from rgns.models import Simulator, count_parameters
@@ -23,9 +23,6 @@ from rgns.training.rollouts import forward_rollout
 log = logging.getLogger(__name__)
 
 # display names of the trained simulators, by class name (labels only: models are built by _target_)
-DISPLAY_NAMES = {"GNS": "GNS", "RGNS": "R-GNS", "SepGNS": "Sep-GNS"}
-
-
 @dataclass
 class Method:
     label: str
@@ -108,7 +105,8 @@ def check_fits(model: Simulator, source: str, metadata: dict, particle_types, wh
 
 def describe(model_config: dict) -> str:
     """``R-GNS 128x10``, ``R-GNS† 128x10`` (forward-only training), ablations appended."""
-    name = DISPLAY_NAMES.get(model_config["_target_"].rsplit(".", 1)[-1], model_config["_target_"].rsplit(".", 1)[-1])
+    cls = get_class(model_config["_target_"])
+    name = getattr(cls, "display_name", "") or cls.__name__
     if model_config.get("train_inverse") is False:
         name += "†"
     label = f"{name} {model_config.get('latent', '?')}x{model_config.get('layers', '?')}"

@@ -75,6 +75,7 @@ class Simulator(nn.Module):
     """
 
     bidirectional: bool = False
+    display_name: str = ""  # the name reports give the model (``describe``); empty: the class name
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, embedding: int = 16,
                  hard_walls: bool = False):

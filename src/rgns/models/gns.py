@@ -26,6 +26,8 @@ class GNS(Simulator):
         hidden_layers (int, optional): hidden layers per MLP. (default: :obj:`2`)
     """
 
+    display_name = "GNS"
+
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)

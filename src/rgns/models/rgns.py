@@ -41,6 +41,7 @@ class RGNS(Simulator):
             velocities) or ``"differences"`` (see :meth:`to_basis`). (default: ``"velocity"``)
     """
 
+    display_name = "R-GNS"
     bidirectional = True
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,

@@ -21,6 +21,7 @@ class SepGNS(Simulator):
     Args: as :class:`GNS`; both networks get the same sizes (``hard_walls`` acts on the steps of this model).
     """
 
+    display_name = "Sep-GNS"
     bidirectional = True
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
