@@ -140,6 +140,25 @@ def test_difference_basis_is_an_exact_change_of_basis(history):
         assert torch.allclose(model.step(state).velocity_history[:, -1], state.velocity_history[:, -1], atol=1e-9)
 
 
+@pytest.mark.parametrize("history", [1, 5])
+def test_gns_difference_basis_reads_the_newest_velocity_and_accelerations(history):
+    """GNS with basis="differences": its node encoder reads v^{k-1} over the velocity std and the
+    k - 1 accelerations over the acceleration std, in place of the k normalised velocities."""
+    model = GNS(metadata(2), history=history, latent=16, layers=2, basis="differences").double()
+    velocity = torch.randn(9, history, 2, dtype=torch.float64) * 1e-3
+    seen = {}
+    model.node_encoder.register_forward_hook(lambda module, args, out: seen.update(x=args[0]))
+    position = torch.rand(9, 2, dtype=torch.float64) * 0.8 + 0.1
+    model.next_velocity(position, velocity, torch.full((9,), WATER), radius_graph(position, 0.2))
+    features = seen["x"][:, : history * 2].unflatten(1, (history, 2))
+    torch.testing.assert_close(features[:, -1], (velocity[:, -1] - model.vel_mean) / model.vel_std_noisy)
+    if history > 1:
+        torch.testing.assert_close(features[:, 0], (velocity[:, 1] - velocity[:, 0]) / model.acc_std_noisy)
+    torch.testing.assert_close(model.from_differences(features, history - 1), velocity, rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="basis"):
+        GNS(metadata(2), basis="accelerations")
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("encoder", ["ilp", "mlp"])
 @pytest.mark.parametrize("basis", ["velocity", "differences"])

@@ -116,6 +116,30 @@ class Simulator(nn.Module):
     def denormalise_velocity(self, velocity: Tensor) -> Tensor:
         return velocity * self.vel_std_noisy + self.vel_mean
 
+    def to_differences(self, velocity_history: Tensor, anchor: int) -> Tensor:
+        """A fixed invertible change of basis of ``V [N, k, D]`` around the slot ``anchor``:
+        ``v^anchor`` normalised by the velocity statistics, every other slot as its difference to
+        the neighbour towards ``anchor`` (newer slots ``v^j - v^{j-1}``, older ``v^{j+1} - v^j``)
+        over the acceleration std. A network reading it sees accelerations at their own scale,
+        not as small differences of normalised velocities (about 14x larger on the default data).
+
+        Shapes:
+            velocity_history: ``[N, k, D]``  ->  ``[N, k, D]``
+        """
+        c = anchor
+        centre = self.normalise_velocity(velocity_history[:, c : c + 1])  # [N, 1, D]
+        newer = (velocity_history[:, c + 1 :] - velocity_history[:, c:-1]) / self.acc_std_noisy
+        older = (velocity_history[:, 1 : c + 1] - velocity_history[:, :c]) / self.acc_std_noisy
+        return torch.cat([older, centre, newer], dim=1)
+
+    def from_differences(self, x: Tensor, anchor: int) -> Tensor:
+        """The inverse of :meth:`to_differences`: ``[N, k, D]`` -> physical ``V [N, k, D]``."""
+        c = anchor
+        centre = self.denormalise_velocity(x[:, c : c + 1])  # [N, 1, D]
+        newer = centre + (x[:, c + 1 :] * self.acc_std_noisy).cumsum(1)  # v^{c+1} .. v^{k-1}
+        older = centre - (x[:, :c] * self.acc_std_noisy).flip(1).cumsum(1).flip(1)  # v^0 .. v^{c-1}
+        return torch.cat([older, centre, newer], dim=1)
+
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
         """Predict ``v^{t+1} [N, D]`` from ``p^t [N, D]`` and ``V^t [N, k, D]`` on the radius graph of ``p^t``."""

@@ -24,13 +24,21 @@ class GNS(Simulator):
         latent (int, optional): latent width. (default: :obj:`128`)
         layers (int, optional): message-passing steps. (default: :obj:`10`)
         hidden_layers (int, optional): hidden layers per MLP. (default: :obj:`2`)
+        basis (str, optional): the velocity features the node encoder reads: ``"velocity"``
+            (DeepMind's: the k normalised velocities) or ``"differences"`` (the newest velocity
+            normalised and the k - 1 accelerations over their std:
+            :meth:`~rgns.models.base.Simulator.to_differences`). (default: ``"velocity"``)
     """
 
     display_name = "GNS"
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
-                 layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False):
+                 layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False,
+                 basis: str = "velocity"):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        if basis not in ("velocity", "differences"):
+            raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
+        self.basis = basis
         node_in = history * self.dim + self.condition_channels
         self.node_encoder = mlp(node_in, latent, latent, hidden_layers)
         self.edge_encoder = mlp(self.dim + 1, latent, latent, hidden_layers)
@@ -39,7 +47,10 @@ class GNS(Simulator):
 
     def encode(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                edge_index: Tensor) -> tuple[Tensor, Tensor]:
-        velocities = self.normalise_velocity(velocity_history).flatten(1)  # [N, k D]
+        if self.basis == "velocity":
+            velocities = self.normalise_velocity(velocity_history).flatten(1)  # [N, k D]
+        else:
+            velocities = self.to_differences(velocity_history, anchor=self.history - 1).flatten(1)  # [N, k D]
         nodes = torch.cat([velocities, self.node_conditions(position, particle_type)], dim=-1)
         edges = edge_features(position, edge_index, self.radius)  # [E, D + 1]
         return self.node_encoder(nodes), self.edge_encoder(edges)  # [N, C], [E, C]

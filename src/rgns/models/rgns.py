@@ -85,21 +85,13 @@ class RGNS(Simulator):
         """
         if self.basis == "velocity":
             return self.normalise_velocity(velocity_history)
-        c = self.history // 2
-        centre = self.normalise_velocity(velocity_history[:, c : c + 1])  # [N, 1, D]
-        newer = (velocity_history[:, c + 1 :] - velocity_history[:, c:-1]) / self.acc_std_noisy
-        older = (velocity_history[:, 1 : c + 1] - velocity_history[:, :c]) / self.acc_std_noisy
-        return torch.cat([older, centre, newer], dim=1)
+        return self.to_differences(velocity_history, anchor=self.history // 2)
 
     def from_basis(self, x: Tensor) -> Tensor:
         """The inverse of :meth:`to_basis`: ``[N, k, D]`` -> physical ``V [N, k, D]``."""
         if self.basis == "velocity":
             return self.denormalise_velocity(x)
-        c = self.history // 2
-        centre = self.denormalise_velocity(x[:, c : c + 1])  # [N, 1, D]
-        newer = centre + (x[:, c + 1 :] * self.acc_std_noisy).cumsum(1)  # v^{c+1} .. v^{k-1}
-        older = centre - (x[:, :c] * self.acc_std_noisy).flip(1).cumsum(1).flip(1)  # v^0 .. v^{c-1}
-        return torch.cat([older, centre, newer], dim=1)
+        return self.from_differences(x, anchor=self.history // 2)
 
     def encode(self, velocity_history: Tensor) -> Tensor:
         return self.projection.encode(self.to_basis(velocity_history).flatten(1))  # [N, k D] -> [N, C]
