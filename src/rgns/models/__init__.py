@@ -1,9 +1,10 @@
 """Simulators on the physical state: GNS, R-GNS and Sep-GNS (see :mod:`rgns.models.base` for
 the state and the two directions)."""
 from rgns.models.base import Simulator, State, count_parameters
+from rgns.models.dmcf import DMCF
 from rgns.models.egnn import EGNN
 from rgns.models.gns import GNS
 from rgns.models.rgns import RGNS
 from rgns.models.sep_gns import SepGNS
 
-__all__ = ["EGNN", "GNS", "RGNS", "SepGNS", "Simulator", "State", "count_parameters"]
+__all__ = ["DMCF", "EGNN", "GNS", "RGNS", "SepGNS", "Simulator", "State", "count_parameters"]
