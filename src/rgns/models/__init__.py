@@ -4,7 +4,8 @@ from rgns.models.base import Simulator, State, count_parameters
 from rgns.models.dmcf import DMCF
 from rgns.models.egnn import EGNN
 from rgns.models.gns import GNS
+from rgns.models.neural_sph import NeuralSPH
 from rgns.models.rgns import RGNS
 from rgns.models.sep_gns import SepGNS
 
-__all__ = ["DMCF", "EGNN", "GNS", "RGNS", "SepGNS", "Simulator", "State", "count_parameters"]
+__all__ = ["DMCF", "EGNN", "GNS", "NeuralSPH", "RGNS", "SepGNS", "Simulator", "State", "count_parameters"]
