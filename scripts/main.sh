@@ -41,7 +41,7 @@ echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train
 # (the step budgets end well within the caps on a 2-core machine, so a run's result is its seed's;
 # each is a multiple of the validation interval, 2,500: last.ckpt is written at validations only)
 # (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU)
-train rgns 15000 00:00:13:00 model.memory_saving=false "$@" &
+train rgns 15000 00:00:14:00 model.memory_saving=false "$@" &
 first=$!
 ( train gns 10000 00:00:07:30 model.layers=4 recipe=pushforward "$@" \
   && train sep_gns 5000 00:00:06:30 model.layers=4 recipe=pushforward "$@" ) &
