@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Mapping
 
 import numpy as np
 import torch
@@ -48,6 +49,15 @@ def wall_samples(bounds: Tensor, spacing: float) -> tuple[Tensor, Tensor]:
         positions.append(points)
         normals.append(normal)
     return torch.cat(positions).float(), torch.cat(normals).float()
+
+
+def particle_spacing(metadata: Mapping) -> float | None:
+    """The dataset's particle spacing at rest, ``generator.params.spacing``, if it was generated here."""
+    params = (metadata.get("generator") or {}).get("params") or {}
+    # the model built by Hydra (SimulatorModule) sees its arguments instantiated recursively: there
+    # ``params`` is the scene object that it describes, not its config
+    spacing = params.get("spacing") if isinstance(params, Mapping) else getattr(params, "spacing", None)
+    return None if spacing is None else float(spacing)
 
 
 class DMCF(Simulator):
@@ -111,8 +121,7 @@ class DMCF(Simulator):
             gravity = [0.0, -9.81] + [0.0] * (dim - 2)
         self.register_buffer("gravity", torch.as_tensor(gravity, dtype=torch.float32) * float(metadata["dt"]) ** 2)
         if wall_spacing is None:
-            params = (metadata.get("generator") or {}).get("params") or {}
-            wall_spacing = float(params.get("spacing", self.radius / 2))
+            wall_spacing = particle_spacing(metadata) or self.radius / 2
         self.wall_spacing = wall_spacing
         walls, normals = wall_samples(self.bounds, wall_spacing)
         self.register_buffer("wall_position", walls, persistent=False)  # [M, D]
