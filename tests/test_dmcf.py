@@ -211,6 +211,14 @@ def test_walls_are_sampled_on_the_faces_near_the_particles(dim):
     assert (kept_normals[:, 1] == 1).all()
 
 
+def test_wall_spacing_is_the_datasets_particle_spacing():
+    generated = metadata(generator={"params": {"spacing": 0.04}})
+    assert DMCF(generated, **SMALL).wall_spacing == 0.04
+    # as train.py builds it: Hydra has instantiated the scene the params describe
+    assert DMCF(metadata(generator={"params": SimpleNamespace(spacing=0.04)}), **SMALL).wall_spacing == 0.04
+    assert DMCF(metadata(), **SMALL).wall_spacing == 0.05  # none known: half the connectivity radius
+
+
 def test_graphs_of_a_batch_do_not_interact():
     model = DMCF(metadata(), **SMALL)
     randomise(model)
