@@ -4,6 +4,7 @@ only, and training through the LightningModule."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -170,6 +171,8 @@ def test_gravity_and_spacing_come_from_the_dataset():
     assert torch.equal(model.acc_std_noisy, plain.acc_std_noisy)  # its std does not
     assert model.relaxation.spacing == 0.01
     assert dataset_spacing(metadata()) == DEFAULT_SPACING and dataset_spacing(meta, 0.02) == 0.02
+    # the scene object where Hydra's instantiate has built the generator's config (SimulatorModule)
+    assert dataset_spacing(metadata(generator={"params": SimpleNamespace(spacing=0.01)})) == 0.01
     assert torch.allclose(NeuralSPH(meta, gravity=[0.0, -1.0], **SMALL).gravity, torch.tensor([0.0, -0.0025**2]))
     # data without gravity (DeepMind's): its mean acceleration stands in, as for the ballistic baseline
     assert torch.equal(NeuralSPH(metadata(), **SMALL).gravity, torch.tensor([1e-6, 1e-6]))
@@ -273,9 +276,12 @@ def test_default_size_is_gns_sized():
 
 def test_training_steps_through_the_module(tiny_dataset):
     model = {"_target_": "rgns.models.NeuralSPH", "latent": 16, "layers": 2}
-    module = SimulatorModule(model, dict(make_metadata(), gravity=GRAVITY),
+    # the generator's scene config, as generated metadata carries it (the module's instantiate builds it)
+    generator = {"params": {"_target_": "types.SimpleNamespace", "spacing": 0.01}}
+    module = SimulatorModule(model, dict(make_metadata(), gravity=GRAVITY, generator=generator),
                              {"_target_": "rgns.training.losses.LossDesign", "name": "DL4"},
                              {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}, noise_std=1e-4)
+    assert module.model.relaxation.spacing == 0.01
     windows = WindowDataset(open_split(tiny_dataset, "train"), radius=0.08, history=K, noise_std=1e-4)
     batch = Batch.from_data_list([windows[0], windows[len(windows) - 1]])
     optimizer = torch.optim.Adam(module.parameters(), lr=1e-3)

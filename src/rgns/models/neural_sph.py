@@ -14,6 +14,7 @@ SPH relaxation of the particles after every learned step of a rollout.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import replace
 
 import torch
@@ -157,8 +158,11 @@ def dataset_spacing(metadata: dict, spacing: float | None = None) -> float:
     (``metadata["generator"]["params"]["spacing"]``), else :data:`DEFAULT_SPACING`."""
     if spacing is not None:
         return float(spacing)
-    params = (metadata.get("generator") or {}).get("params") or {}
-    return float(params.get("spacing", DEFAULT_SPACING))
+    params = (metadata.get("generator") or {}).get("params")
+    # a mapping as metadata.json holds it, or the scene object itself where Hydra's instantiate,
+    # handed the metadata as an argument, has built the scene config it describes
+    spacing = params.get("spacing") if isinstance(params, Mapping) else getattr(params, "spacing", None)
+    return DEFAULT_SPACING if spacing is None else float(spacing)
 
 
 class NeuralSPH(GNS):
