@@ -184,6 +184,37 @@ def bare_layer(channels: int = 8, **options) -> EquivariantLayer:
     return layer
 
 
+def test_the_layer_is_its_equations_evaluated_neighbour_by_neighbour():
+    """E-GCL with walls and gravity (rgns.nn.egnn.EquivariantLayer's docstring), by a direct loop."""
+    h, x, velocity, edge_index, edge_vector, walls, _ = layer_inputs()
+    gravity = torch.tensor([0.3, -0.8], dtype=torch.float64)
+    layer = bare_layer()
+    with torch.no_grad():
+        layer.velocity_mlp[-1].weight.normal_()  # phi_v != 1 here
+        new_h, u = layer(h, x, velocity, edge_index, edge_vector, walls, gravity, 0.5)
+        for i in range(len(h)):
+            messages, pairs = torch.zeros_like(h[i]), torch.zeros_like(x[i])
+            incoming = (edge_index[1] == i).nonzero().flatten().tolist()
+            for e in incoming:
+                j = edge_index[0, e].item()
+                relative = edge_vector[e] + x[i] - x[j]
+                m = layer.edge_mlp(torch.cat([relative.pow(2).sum(0, keepdim=True),
+                                              edge_vector[e].pow(2).sum(0, keepdim=True), h[i], h[j]]))
+                messages, pairs = messages + m, pairs + relative * layer.coordinate_mlp(m)
+            pairs = pairs / max(len(incoming), 1)  # C: the mean
+            wall_messages, wall_terms = torch.zeros_like(h[i]), torch.zeros_like(x[i])
+            for w in range(walls.size(1)):
+                from_wall = x[i] - walls[i, w]
+                m = layer.wall_mlp(torch.cat([from_wall.pow(2).sum(0, keepdim=True),
+                                              walls[i, w].pow(2).sum(0, keepdim=True), h[i]]))
+                wall_messages, wall_terms = wall_messages + m, wall_terms + from_wall * layer.wall_coordinate_mlp(m)
+            expected_u = ((1 + layer.velocity_mlp(h[i])) * velocity[i]
+                          + 0.5 * (pairs + wall_terms + layer.gravity_mlp(h[i]) * gravity))
+            expected_h = h[i] + layer.node_mlp(torch.cat([h[i], messages, wall_messages]))
+            torch.testing.assert_close(u[i], expected_u)
+            torch.testing.assert_close(new_h[i], expected_h)
+
+
 def test_tanh_bounds_the_coordinate_updates():
     h, x, velocity, edge_index, edge_vector, walls, gravity = layer_inputs()
     relative = edge_vector + x[edge_index[1]] - x[edge_index[0]]

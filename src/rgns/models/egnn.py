@@ -38,7 +38,7 @@ class EGNN(Simulator):
         metadata, history, noise_std, embedding, hard_walls: see :class:`~rgns.models.base.Simulator`;
             gravity is ``metadata["gravity"]`` (m/s^2) times ``dt^2``, or else ``acc_mean`` (as
             :class:`~rgns.evaluation.baselines.Ballistic`).
-        latent (int, optional): width of h and the messages. (default: :obj:`256`)
+        latent (int, optional): width of h and the messages. (default: :obj:`264`)
         layers (int, optional): equivariant layers. (default: :obj:`5`)
         coordinate_aggregation, normalise, tanh, coordinate_gain: the stabilisers of
             :class:`~rgns.nn.egnn.EquivariantLayer`.
@@ -46,7 +46,7 @@ class EGNN(Simulator):
 
     display_name = "EGNN"
 
-    def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 256,
+    def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 264,
                  layers: int = 5, embedding: int = 16, hard_walls: bool = False,
                  coordinate_aggregation: str = "mean", normalise: bool = False, tanh: bool = False,
                  coordinate_gain: float = 1e-3):

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 from torch_geometric.nn import MessagePassing
 from torch_geometric.utils import degree
+
+from rgns.nn.mlp import edge_input_terms
 
 EPS = 1e-8  # inside every square root: |x|^2 + eps keeps gradients finite where vectors vanish
 
@@ -33,10 +36,10 @@ class EquivariantLayer(MessagePassing):
     r"""One E(n)-equivariant convolution (E-GCL, velocity form), with walls and gravity:
 
     .. math::
-        \mathbf{m}_{ij} &= \phi_e(\mathbf{h}_i, \mathbf{h}_j, |\mathbf{x}_{ij}|^2, a_{ij}),
+        \mathbf{m}_{ij} &= \phi_e(|\mathbf{x}_{ij}|^2, a_{ij}, \mathbf{h}_i, \mathbf{h}_j),
         \qquad \mathbf{x}_{ij} = \mathbf{x}_i - \mathbf{x}_j
 
-        \mathbf{m}_{iw} &= \phi_{w}(\mathbf{h}_i, |\mathbf{x}_{iw}|^2, a_{iw}),
+        \mathbf{m}_{iw} &= \phi_{w}(|\mathbf{x}_{iw}|^2, a_{iw}, \mathbf{h}_i),
         \qquad \mathbf{x}_{iw} = \mathbf{x}_i - \mathbf{x}_w
 
         \mathbf{u}_i &= \phi_v(\mathbf{h}_i)\, \mathbf{v}_i + s \Big( C \sum_j \mathbf{x}_{ij}\,
@@ -47,7 +50,9 @@ class EquivariantLayer(MessagePassing):
         \sum_w \mathbf{m}_{iw}\big)
 
     Each wall w is a virtual neighbour at a fixed point :math:`\mathbf{x}_w` (its point nearest
-    to the particle at the start of the step); :math:`\mathbf{g}` is gravity. Only vectors
+    to the particle at the start of the step, at most R away); :math:`\mathbf{g}` is gravity;
+    the edge attributes :math:`a_{ij}`, :math:`a_{iw}` are the squared distances at the start of
+    the step; s scales the vector terms (the acceleration's scale). Only vectors
     (:math:`\mathbf{x}_{ij}`, :math:`\mathbf{x}_{iw}`, :math:`\mathbf{v}_i`, :math:`\mathbf{g}`)
     are multiplied by the learned scalars, which see only invariants, so :math:`\mathbf{u}` rotates
     and reflects with the inputs. :math:`\phi_v = 1 + \psi_v`; the last layers of :math:`\phi_x`,
@@ -87,8 +92,8 @@ class EquivariantLayer(MessagePassing):
         self.channels = channels
         self.coordinate_aggregation = coordinate_aggregation
         self.normalise, self.tanh = bool(normalise), bool(tanh)
-        self.edge_mlp = silu_mlp(2 * channels + 2, channels, channels, final_activation=True)  # phi_e
-        self.wall_mlp = silu_mlp(channels + 2, channels, channels, final_activation=True)  # phi_w
+        self.edge_mlp = silu_mlp(2 + 2 * channels, channels, channels, final_activation=True)  # phi_e
+        self.wall_mlp = silu_mlp(2 + channels, channels, channels, final_activation=True)  # phi_w
         self.coordinate_mlp = silu_mlp(channels, channels, 1, bias=False)  # phi_x
         self.wall_coordinate_mlp = silu_mlp(channels, channels, 1, bias=False)  # phi_xw
         self.gravity_mlp = silu_mlp(channels, channels, 1)  # phi_g
@@ -101,17 +106,25 @@ class EquivariantLayer(MessagePassing):
 
     def forward(self, h: Tensor, x: Tensor, velocity: Tensor, edge_index: Tensor, edge_vector: Tensor,
                 walls: Tensor, gravity: Tensor, acceleration_scale: float | Tensor) -> tuple[Tensor, Tensor]:
+        sender, receiver = edge_index
+        relative = edge_vector + x[receiver] - x[sender]  # [E, D], x_ij now
+        # squared distances: smooth where particles coincide; a_ij = |x_ij|^2 at the start of the step
+        distances = torch.cat([relative.pow(2).sum(-1, keepdim=True), edge_vector.pow(2).sum(-1, keepdim=True)], dim=-1)
+        # phi_e's first layer on [|x_ij|^2, a_ij, h_i, h_j], its node terms computed once per node
+        edge_term, receiver_term, sender_term = edge_input_terms(self.edge_mlp, 2, h, distances)  # [E|N, C]
         # messages and coordinate terms of the neighbours, aggregated in one pass
-        aggregated = self.propagate(edge_index, h=h, x=x, edge_vector=edge_vector, size=(h.size(0), h.size(0)))
+        aggregated = self.propagate(edge_index, receiver=receiver_term, sender=sender_term, edge_term=edge_term,
+                                    relative=relative, size=(h.size(0), h.size(0)))  # [N, C + D]
         message, pairs = aggregated[:, : self.channels], aggregated[:, self.channels :]  # [N, C], [N, D]
         if self.coordinate_aggregation == "mean":
             pairs = pairs / degree(edge_index[1], h.size(0), dtype=pairs.dtype).clamp(min=1).unsqueeze(-1)
 
         # the walls: virtual neighbours at fixed points, seen from the moved particle
         from_wall = x.unsqueeze(1) - walls  # [N, W, D], x_i - x_w
-        wall_input = torch.cat([h.unsqueeze(1).expand(-1, walls.size(1), -1),
-                                from_wall.pow(2).sum(-1, keepdim=True), walls.pow(2).sum(-1, keepdim=True)], dim=-1)
-        wall_message = self.wall_mlp(wall_input)  # [N, W, C]
+        wall_distances = torch.cat([from_wall.pow(2).sum(-1, keepdim=True), walls.pow(2).sum(-1, keepdim=True)], dim=-1)
+        first = self.wall_mlp[0]  # on [|x_iw|^2, a_iw, h_i]: the h term once per node, not per wall
+        wall_term = F.linear(wall_distances, first.weight[:, :2], first.bias) + F.linear(h, first.weight[:, 2:]).unsqueeze(1)
+        wall_message = self.wall_mlp[1:](wall_term)  # [N, W, C]
         wall_weight = self.wall_coordinate_mlp(wall_message)  # [N, W, 1]
         if self.tanh:
             wall_weight = wall_weight.tanh()
@@ -124,10 +137,8 @@ class EquivariantLayer(MessagePassing):
             h = h + self.node_mlp(torch.cat([h, message, wall_message.sum(1)], dim=-1))
         return h, u
 
-    def message(self, h_i: Tensor, h_j: Tensor, x_i: Tensor, x_j: Tensor, edge_vector: Tensor) -> Tensor:
-        relative = edge_vector + (x_i - x_j)  # [E, D], x_ij now
-        squared = relative.pow(2).sum(-1, keepdim=True)  # squared distances: smooth at coincidence
-        m = self.edge_mlp(torch.cat([h_i, h_j, squared, edge_vector.pow(2).sum(-1, keepdim=True)], dim=-1))
+    def message(self, receiver_i: Tensor, sender_j: Tensor, edge_term: Tensor, relative: Tensor) -> Tensor:
+        m = self.edge_mlp[1:](edge_term + receiver_i + sender_j)  # [E, C], m_ij
         weight = self.coordinate_mlp(m)  # [E, 1]
         if self.tanh:
             weight = weight.tanh()
