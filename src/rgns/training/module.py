@@ -69,7 +69,9 @@ class SimulatorModule(L.LightningModule):
         self.save_hyperparameters()
         model = dict(model)
         train_inverse = model.pop("train_inverse", True)
-        self.model = instantiate(model, metadata=metadata, history=history, noise_std=noise_std)
+        # _recursive_=False: the metadata is data (a generated dataset's carries its scene's _target_,
+        # which a recursive instantiate would build, Taichi and all) and no model config nests a target
+        self.model = instantiate(model, metadata=metadata, history=history, noise_std=noise_std, _recursive_=False)
         self.train_inverse = bool(train_inverse) and self.model.bidirectional
         self.loss = instantiate(loss)
         self.pushforward = Pushforward(**pushforward) if pushforward else None
