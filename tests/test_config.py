@@ -8,7 +8,7 @@ from hydra.utils import instantiate
 
 from rgns import config_dir
 from rgns.data.contract import read_metadata
-from rgns.models import GNS, RGNS, SepGNS
+from rgns.models import DMCF, EGNN, GNS, RGNS, NeuralSPH, SepGNS
 from rgns.training.losses import LossDesign
 
 CONF = config_dir()
@@ -28,14 +28,15 @@ def build_module(cfg, metadata):
 
 
 def test_every_group_has_its_options():
-    assert options("model") == ["gns", "rgns", "rgns_forward_only", "sep_gns"]
+    assert options("model") == ["dmcf", "egnn", "gns", "neural_sph", "rgns", "rgns_forward_only", "sep_gns"]
     assert options("loss") == ["dl1", "dl2", "dl3", "dl4"]
     assert options("trainer") == ["cpu", "ddp", "ddp_sim", "default", "gpu"]
 
 
 @pytest.mark.parametrize(
     "model, cls, bidirectional_training",
-    [("rgns", RGNS, True), ("rgns_forward_only", RGNS, False), ("gns", GNS, False), ("sep_gns", SepGNS, True)],
+    [("rgns", RGNS, True), ("rgns_forward_only", RGNS, False), ("gns", GNS, False), ("sep_gns", SepGNS, True),
+     ("egnn", EGNN, False), ("neural_sph", NeuralSPH, False), ("dmcf", DMCF, False)],
 )
 def test_every_model_instantiates(tmp_path, tiny_dataset, model, cls, bidirectional_training):
     cfg = train_cfg(tmp_path, f"model={model}", "model.latent=16", "model.layers=2")

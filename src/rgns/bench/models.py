@@ -13,7 +13,9 @@ resident set at once (on CUDA, ``torch.cuda.max_memory_allocated``).
 Training steps: GNS with its forward loss; R-GNS with the forward and the inverse loss on the
 same batch (its real training step, memory-saving backward), plus R-GNS† (forward loss only),
 R-GNS without memory saving, and Sep-GNS (both of its GNS, one loss each: the other way to
-train both directions) for reference.
+train both directions) for reference; the paper's other forward baselines, EGNN, NeuralSPH and
+DMCF, with their forward loss (one step; DMCF's unrolled training multiplies it by the window).
+Inference steps run in eval mode, so NeuralSPH's includes its SPH relaxation.
 """
 from __future__ import annotations
 
@@ -31,7 +33,7 @@ import torch
 
 from rgns.data.contract import WATER
 from rgns.data.graph import radius_graph
-from rgns.models import GNS, RGNS, SepGNS, State, count_parameters
+from rgns.models import DMCF, EGNN, GNS, RGNS, NeuralSPH, SepGNS, State, count_parameters
 
 # WaterDrop's statistics (DeepMind's metadata); the radius is set for ~20 neighbours.
 METADATA = dict(bounds=[[0.1, 0.9], [0.1, 0.9]], dim=2, dt=0.0025, sequence_length=1000,
@@ -43,7 +45,11 @@ TRAIN_CASES = {  # name: (model, memory saving, directions in the loss)
     "rgns_forward_only": (RGNS, True, 1),
     "rgns_plain": (RGNS, False, 2),
     "sep_gns": (SepGNS, False, 2),
+    "egnn": (EGNN, False, 1),
+    "neural_sph": (NeuralSPH, False, 1),
+    "dmcf": (DMCF, False, 1),
 }
+FORWARD_BASELINES = {"egnn": "EGNN", "neural_sph": "NeuralSPH", "dmcf": "DMCF"}  # rows after Sep-GNS
 
 
 def scene(particles: int, neighbours: float, seed: int = 0) -> tuple[dict, State]:
@@ -167,18 +173,20 @@ def main(argv: list[str]) -> dict:
                              threads=torch.get_num_threads(), repeats=args.repeats, torch=torch.__version__,
                              freed_memory_kept=kept))
 
-    result["params"] = {name: count_parameters(cls(metadata)) for name, cls in
-                        (("gns", GNS), ("rgns", RGNS), ("sep_gns", SepGNS))}
+    result["params"] = {name: count_parameters(TRAIN_CASES[name][0](metadata))
+                        for name in ("gns", "rgns", "sep_gns", *FORWARD_BASELINES)}
 
     gns, _ = build("gns", metadata, device)
     rgns, _ = build("rgns", metadata, device)
+    others = {name: build(name, metadata, device)[0].eval() for name in FORWARD_BASELINES}
     with torch.no_grad():
         result["infer_ms"] = interleaved_median_ms(dict(
             gns=lambda: gns.step(state),
             rgns_forward=lambda: rgns.step(state),
             rgns_inverse=lambda: rgns.inverse_step(state),
+            **{name: (lambda m=model: m.step(state)) for name, model in others.items()},
         ), args.repeats, device)
-    del gns, rgns
+    del gns, rgns, others
 
     models = {case: build(case, metadata, device) for case in TRAIN_CASES}
     result["train_ms"] = interleaved_median_ms(
@@ -206,6 +214,8 @@ def main(argv: list[str]) -> dict:
         rgns_over_gns_peak=peak["rgns"] / peak["gns"],
         rgns_over_sep_gns_train=train["rgns"] / train["sep_gns"],
         rgns_over_sep_gns_peak=peak["rgns"] / peak["sep_gns"],
+        **{f"{name}_over_gns_infer": infer[name] / infer["gns"] for name in FORWARD_BASELINES},
+        **{f"{name}_over_gns_train": train[name] / train["gns"] for name in FORWARD_BASELINES},
     )
     print(table(result))
     if args.json:
@@ -229,6 +239,8 @@ def table(result: dict) -> str:
         f"| R-GNS without memory saving | same | same | {t['rgns_plain']:.0f} | {m['rgns_plain']:.0f} |",
         f"| Sep-GNS (both GNS, one loss each) | {p['sep_gns'] / 1e6:.3f} M | as GNS, per direction | "
         f"{t['sep_gns']:.0f} | {m['sep_gns']:.0f} |",
+        *(f"| {label} | {p[name] / 1e6:.3f} M | {i[name]:.0f} | {t[name]:.0f} | {m[name]:.0f} |"
+          for name, label in FORWARD_BASELINES.items()),
         "",
         "ratios: " + ", ".join(f"{k} {v:.2f}" for k, v in result["ratios"].items()),
     ]

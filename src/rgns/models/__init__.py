@@ -1,5 +1,6 @@
-"""Simulators on the physical state: GNS, R-GNS and Sep-GNS (see :mod:`rgns.models.base` for
-the state and the two directions)."""
+"""Simulators on the physical state: R-GNS, GNS and Sep-GNS, and the paper's other forward
+baselines EGNN, NeuralSPH and DMCF (see :mod:`rgns.models.base` for the state and the two
+directions)."""
 from rgns.models.base import Simulator, State, count_parameters
 from rgns.models.dmcf import DMCF
 from rgns.models.egnn import EGNN
