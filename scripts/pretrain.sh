@@ -6,16 +6,21 @@
 # pretrained/waterdrop40_main/<model>.ckpt with <model>.json: the command, the commit, the steps
 # and the time it took. Models run side by side, one thread each (start at most one per core).
 #
-# Usage: bash scripts/pretrain.sh MODEL [MODEL ...]   (rgns, rgns_forward_only, gns, sep_gns)
+# Usage: bash scripts/pretrain.sh MODEL [MODEL ...] [-- OVERRIDES]   (rgns, rgns_forward_only, gns, sep_gns)
+# (OVERRIDES go to every train.py run after the recipe's, e.g. for a smoke run with
+#  PRETRAINED_DIR=/tmp/p bash scripts/pretrain.sh rgns -- trainer.max_steps=20 trainer.val_check_interval=10)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 [ $# -gt 0 ] || { echo "usage: bash scripts/pretrain.sh MODEL [MODEL ...] (rgns rgns_forward_only gns sep_gns)" >&2; exit 2; }
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONWARNINGS=ignore
-dest=pretrained/waterdrop40_main
+models=()
+while [ $# -gt 0 ] && [ "$1" != "--" ]; do models+=("$1"); shift; done
+[ $# -gt 0 ] && shift  # the rest: overrides for every run
+dest=${PRETRAINED_DIR:-pretrained/waterdrop40_main}
 mkdir -p "$dest" outputs/pretrain
 
 pretrain() {
-  local model=$1 extra
+  local model=$1 extra; shift
   case $model in  # step budgets sized for about an hour on one core beside another run (docs/pretrained.md)
     rgns|rgns_forward_only) extra=(trainer.max_steps=60000 model.memory_saving=false) ;;
     gns|sep_gns) extra=(trainer.max_steps=70000 model.layers=4 recipe=pushforward) ;;
@@ -24,7 +29,7 @@ pretrain() {
   local run=outputs/pretrain/$model
   local args=(experiment=main model="$model" data.root=datasets/waterdrop40_main "${extra[@]}"
               trainer.max_time=00:01:20:00 trainer.val_check_interval=5000 module.val_trajectories=8
-              trainer.enable_progress_bar=false hydra.run.dir="$run")
+              trainer.enable_progress_bar=false hydra.run.dir="$run" "$@")
   local start=$SECONDS
   .venv/bin/python train.py "${args[@]}" > "$run.log" 2>&1
   local best
@@ -45,7 +50,7 @@ EOF
 .venv/bin/python -m rgns.data.generate scene=waterdrop num_trajectories=32 splits.valid=8 splits.test=8 \
   out_dir=datasets/waterdrop40_main
 pids=()
-for model in "$@"; do pretrain "$model" & pids+=($!); done
+for model in "${models[@]}"; do pretrain "$model" "$@" & pids+=($!); done
 status=0
 for pid in "${pids[@]}"; do wait "$pid" || status=$?; done
 exit $status
