@@ -321,3 +321,24 @@ def test_models_run_on_cuda():
         assert model.rollout(state, 2).device.type == "cuda"
         if model.bidirectional:
             assert model.inverse_rollout(state, 2).device.type == "cuda"
+
+
+class _Collapsing(GNS):
+    """Every particle jumps to the box's centre: a clump whose radius graph is complete."""
+
+    def next_velocity(self, position, velocity_history, particle_type, edge_index, batch=None):
+        return self.bounds.mean(dim=1) - position
+
+
+def test_a_collapsed_rollout_stops_and_repeats_its_last_frame(caplog):
+    state = random_state(dim=2, seed=3)
+    model = _Collapsing(metadata(2), latent=8, layers=1)
+    with caplog.at_level("WARNING"):
+        positions = model.rollout(state, 6)
+    assert positions.shape == (6, *state.position.shape)
+    assert "collapsed at step 1 of 6" in caplog.text
+    assert torch.equal(positions[1:], positions[:1].expand(5, -1, -1))
+    # a rollout that does not collapse is the same with and without the guard
+    gns = GNS(metadata(2), **SMALL)
+    torch.testing.assert_close(gns.rollout(state, 6), gns.rollout(state, 6, collapse_factor=None), rtol=0, atol=0)
+    assert model.densest_cell(positions[-1]) == int((state.particle_type != KINEMATIC).sum())  # the clump

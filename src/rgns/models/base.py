@@ -17,6 +17,7 @@ The data contract of a simulator, stated once:
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import torch
@@ -24,6 +25,8 @@ from torch import Tensor, nn
 
 from rgns.data.contract import KINEMATIC, NUM_PARTICLE_TYPES
 from rgns.data.graph import batched_radius_graph, wall_distance
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -208,13 +211,40 @@ class Simulator(nn.Module):
         history = torch.cat([velocity.unsqueeze(1), history[:, :-1]], dim=1)  # [N, k, D]
         return replace(state, position=position, velocity_history=history)
 
+    def densest_cell(self, position: Tensor, batch: Tensor | None = None) -> int:
+        """The most particles in one cell of a grid of side R (per graph of a batch): a state
+        whose particles clumped has a dense radius graph, which makes every further step
+        quadratic in the clump's size."""
+        cell = torch.floor((position - self.bounds[:, 0]) / self.radius).clamp(-1e4, 1e4).long()  # [N, D]
+        cell = cell - cell.min(dim=0).values
+        key = torch.zeros(len(position), dtype=torch.long, device=position.device)
+        for axis in range(self.dim):
+            key = key * (int(cell[:, axis].max()) + 1) + cell[:, axis]
+        if batch is not None:
+            key = key + batch * (int(key.max()) + 1)
+        return int(torch.unique(key, return_counts=True)[1].max())
+
     @torch.no_grad()
-    def rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None) -> Tensor:
-        """Positions of frames t+1 .. t+steps.  ``kinematic_positions [steps, N, D]`` -> ``[steps, N, D]``"""
+    def rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None,
+                collapse_factor: float | None = 8.0) -> Tensor:
+        """Positions of frames t+1 .. t+steps.  ``kinematic_positions [steps, N, D]`` -> ``[steps, N, D]``
+
+        A rollout whose densest cell of side R holds more than ``collapse_factor`` times the
+        initial state's densest has collapsed (no fluid compresses so): it stops there, logs it,
+        and repeats its last frame for the remaining steps, so its error stays counted while a
+        clump's quadratic radius graph no longer costs minutes per step. ``None``: never stop.
+        """
+        limit = None if collapse_factor is None else collapse_factor * self.densest_cell(state.position, state.batch)
         positions = []
         for i in range(steps):
             state = self.step(state, None if kinematic_positions is None else kinematic_positions[i])
             positions.append(state.position)
+            if limit is not None and i + 1 < steps and self.densest_cell(state.position, state.batch) > limit:
+                log.warning("%s rollout collapsed at step %d of %d (more than %.0f particles in one cell "
+                            "of side R): the remaining frames repeat its last", type(self).__name__, i + 1,
+                            steps, limit)
+                positions.extend([state.position] * (steps - i - 1))
+                break
         return torch.stack(positions)
 
     @torch.no_grad()
