@@ -18,6 +18,7 @@ class ConstantVelocity(Simulator):
 
     bidirectional = True
     label = "Const. velocity"
+    collapse_factor = None  # its piles against the walls are the motion it models, never a collapse to stop
 
     def __init__(self, metadata: dict, history: int = 5):
         super().__init__(metadata, history)

@@ -79,6 +79,7 @@ class Simulator(nn.Module):
 
     bidirectional: bool = False
     display_name: str = ""  # the name reports give the model (``describe``); empty: the class name
+    collapse_factor: float | None = 30.0  # rollouts stop past this x the initial densest R-cell (``rollout``)
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, embedding: int = 16,
                  hard_walls: bool = False):
@@ -225,16 +226,17 @@ class Simulator(nn.Module):
         return int(torch.unique(key, return_counts=True)[1].max())
 
     @torch.no_grad()
-    def rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None,
-                collapse_factor: float | None = 8.0) -> Tensor:
+    def rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None) -> Tensor:
         """Positions of frames t+1 .. t+steps.  ``kinematic_positions [steps, N, D]`` -> ``[steps, N, D]``
 
-        A rollout whose densest cell of side R holds more than ``collapse_factor`` times the
-        initial state's densest has collapsed (no fluid compresses so): it stops there, logs it,
-        and repeats its last frame for the remaining steps, so its error stays counted while a
-        clump's quadratic radius graph no longer costs minutes per step. ``None``: never stop.
+        A rollout whose densest cell of side R holds more than :attr:`collapse_factor` times the
+        initial state's densest has collapsed, far
+        past any fluid's compression or a pile against a wall: it stops there, logs it, and repeats
+        its last frame for the remaining steps, so its error stays counted while a clump's
+        quadratic radius graph no longer costs minutes per step. ``collapse_factor = None``: never stop.
         """
-        limit = None if collapse_factor is None else collapse_factor * self.densest_cell(state.position, state.batch)
+        factor = self.collapse_factor
+        limit = None if factor is None else factor * self.densest_cell(state.position, state.batch)
         positions = []
         for i in range(steps):
             state = self.step(state, None if kinematic_positions is None else kinematic_positions[i])
