@@ -39,7 +39,7 @@ echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train
 # sizes and recipes per model: docs/main_job.md (equal message-passing steps: R-GNS's 2 blocks hold
 # 4 couplings, GNS has 4 interaction layers; pushforward helped GNS, R-GNS needs the time for steps)
 # (the step budgets end well within the caps on a 2-core machine, so a run's result is its seed's;
-# each is a multiple of the validation interval, 2,500: last.ckpt is written at validations only)
+# each is a multiple of the validation interval, 2,500: the evaluated checkpoint is chosen at validations)
 # (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU)
 train rgns 15000 00:00:14:00 model.memory_saving=false "$@" &
 first=$!
