@@ -43,7 +43,7 @@ echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train
 # (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU)
 train rgns 15000 00:00:14:00 model.memory_saving=false "$@" &
 first=$!
-( train gns 10000 00:00:07:30 model.layers=4 recipe=pushforward "$@" \
+( train gns 10000 00:00:09:00 model.layers=4 recipe=pushforward "$@" \
   && train sep_gns 5000 00:00:06:30 model.layers=4 recipe=pushforward "$@" ) &
 second=$!
 status=0
