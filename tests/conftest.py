@@ -43,3 +43,30 @@ def tiny_dataset(tmp_path):
         write_split(tmp_path / f"{split}.h5", [random_trajectory(rng) for _ in range(count)])
     write_metadata(tmp_path, make_metadata())
     return tmp_path
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """A 2/1/1-trajectory dataset of 30 frames, shared by a module's train.py runs."""
+    root = tmp_path_factory.mktemp("data")
+    rng = np.random.default_rng(0)
+    for split, count in zip(SPLITS, (2, 1, 1)):
+        write_split(root / f"{split}.h5", [random_trajectory(rng, frames=30) for _ in range(count)])
+    write_metadata(root, make_metadata(frames=30))
+    return root
+
+
+def train_steps(module, batch, steps: int, lr: float) -> list[float]:
+    """``steps`` Adam steps of a SimulatorModule on one batch; every step's gradient must be
+    finite and reach every parameter. Returns the losses."""
+    optimizer = torch.optim.Adam(module.parameters(), lr=lr)
+    losses = []
+    for _ in range(steps):
+        optimizer.zero_grad()
+        loss = module._losses(batch)["loss"]
+        loss.backward()
+        for name, parameter in module.named_parameters():
+            assert parameter.grad is not None and torch.isfinite(parameter.grad).all(), name
+        losses.append(loss.item())
+        optimizer.step()
+    return losses

@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch_geometric.data import Batch, Data
 
-from conftest import make_metadata
+from conftest import make_metadata, train_steps
 from rgns import config_dir
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.graph import radius_graph
@@ -266,16 +266,7 @@ def test_training_steps_lower_the_loss_with_finite_gradients_everywhere():
     torch.manual_seed(0)
     module = SimulatorModule(MODEL, metadata(), LOSS, OPTIMIZER, noise_std=0.0)
     assert not module.train_inverse and not module.model.bidirectional
-    optimizer = torch.optim.Adam(module.parameters(), lr=3e-3)
-    batch, losses = training_batch(), []
-    for _ in range(8):
-        optimizer.zero_grad()
-        loss = module._losses(batch)["loss"]
-        loss.backward()
-        for name, parameter in module.named_parameters():
-            assert parameter.grad is not None and torch.isfinite(parameter.grad).all(), name
-        losses.append(loss.item())
-        optimizer.step()
+    losses = train_steps(module, training_batch(), steps=8, lr=3e-3)
     assert losses[-1] < 0.8 * losses[0]
 
 

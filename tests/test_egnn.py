@@ -13,7 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from torch_geometric.data import Batch
 
-from conftest import make_metadata
+from conftest import make_metadata, train_steps
 from rgns.data.contract import KINEMATIC, WATER, open_split
 from rgns.data.graph import radius_graph
 from rgns.data.windows import WindowDataset
@@ -258,15 +258,5 @@ def test_training_steps_reach_every_parameter_and_lower_the_loss(tiny_dataset, u
                              {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 3e-3},
                              noise_std=1e-4, unroll=unroll)
     module._trainer = SimpleNamespace(datamodule=SimpleNamespace(lead=0), global_step=0)  # what a step reads
-    optimizer = torch.optim.Adam(module.parameters(), lr=3e-3)
-    losses = []
-    for _ in range(8):
-        optimizer.zero_grad()
-        loss = module._losses(batch)["loss"]
-        loss.backward()
-        if not losses:
-            for name, parameter in module.named_parameters():
-                assert parameter.grad is not None and torch.isfinite(parameter.grad).all(), name
-        optimizer.step()
-        losses.append(loss.item())
+    losses = train_steps(module, batch, steps=8, lr=3e-3)
     assert all(map(math.isfinite, losses)) and losses[-1] < losses[0]

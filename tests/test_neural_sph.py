@@ -11,7 +11,7 @@ import torch
 from omegaconf import OmegaConf
 from torch_geometric.data import Batch
 
-from conftest import make_metadata
+from conftest import make_metadata, train_steps
 from rgns import config_dir
 from rgns.data.contract import KINEMATIC, WATER, open_split
 from rgns.data.graph import radius_graph
@@ -284,15 +284,5 @@ def test_training_steps_through_the_module(tiny_dataset):
     assert module.model.relaxation.spacing == 0.01
     windows = WindowDataset(open_split(tiny_dataset, "train"), radius=0.08, history=K, noise_std=1e-4)
     batch = Batch.from_data_list([windows[0], windows[len(windows) - 1]])
-    optimizer = torch.optim.Adam(module.parameters(), lr=1e-3)
-    losses = []
-    for step in range(15):
-        optimizer.zero_grad()
-        loss = module._losses(batch)["loss"]
-        loss.backward()
-        if step == 0:
-            for name, parameter in module.named_parameters():
-                assert parameter.grad is not None and torch.isfinite(parameter.grad).all(), name
-        optimizer.step()
-        losses.append(loss.item())
+    losses = train_steps(module, batch, steps=15, lr=1e-3)
     assert all(math.isfinite(v) for v in losses) and losses[-1] < losses[0]

@@ -10,30 +10,16 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 import yaml
 
-from rgns.data.contract import SPLITS, write_metadata, write_split
 from rgns.runs import claim_run_dir
 from rgns.training.checkpointing import AtomicCheckpointIO
-
-from conftest import make_metadata, random_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["model.latent=16", "model.layers=2", "trainer=cpu", "trainer.log_every_n_steps=1",
         "trainer.val_check_interval=1000", "trainer.enable_progress_bar=false"]  # no validation in these runs
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("data")
-    rng = np.random.default_rng(0)
-    for split, count in zip(SPLITS, (2, 1, 1)):
-        write_split(root / f"{split}.h5", [random_trajectory(rng, frames=30) for _ in range(count)])
-    write_metadata(root, make_metadata(frames=30))
-    return root
 
 
 def command(dataset: Path, *overrides: str) -> list[str]:

@@ -10,27 +10,12 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from rgns.data.contract import SPLITS, write_metadata, write_split
-
-from conftest import make_metadata, random_trajectory
-
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["model.latent=16", "model.layers=2", "data.num_workers=0", "trainer.log_every_n_steps=1"]
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("data")
-    rng = np.random.default_rng(0)
-    for split, count in zip(SPLITS, (2, 1, 1)):
-        write_split(root / f"{split}.h5", [random_trajectory(rng, frames=30) for _ in range(count)])
-    write_metadata(root, make_metadata(frames=30))
-    return root
 
 
 def train(cwd: Path, *overrides: str, check: bool = True, **popen) -> subprocess.CompletedProcess:
