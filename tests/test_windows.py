@@ -57,6 +57,23 @@ def test_noisy_inputs_clean_velocity_targets(split):
     torch.testing.assert_close(sample.pos[kinematic], position[t][kinematic], rtol=0, atol=0)
 
 
+def test_trajectory_cache_keeps_what_fits_and_changes_nothing(split):
+    size = split[0].position.nbytes + split[0].particle_type.nbytes
+    kept = WindowDataset(split, radius=0.08, history=K, cache_mb=1.5 * size / 2**20)  # room for one of three
+    plain = WindowDataset(split, radius=0.08, history=K, cache_mb=0)
+    order = [len(plain) - 1, 0, 5, len(plain) // 2, len(plain) - 2, 1]  # jumping between trajectories
+    for i in order:
+        a, b = kept[i], plain[i]
+        for key in ("pos", "edge_index", "forward_input", "forward_target", "inverse_input", "inverse_target"):
+            torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+    assert list(kept._kept) == [kept.index[order[0]][0]]  # the first read, and no more: the budget holds
+    assert plain._kept == {}
+    # a trajectory read again comes from memory, not from the file
+    s = kept.index[order[0]][0]
+    position, _ = kept._trajectory(s)
+    assert position is kept._kept[s][0]
+
+
 def test_radius_graph_is_every_pair_within_radius():
     position = torch.rand(300, 3)
     edges = radius_graph(position, 0.2)

@@ -53,14 +53,21 @@ class WindowDataset(Dataset):
         noise_std: GNS random-walk noise std (0 for validation).
         lead: frames before ``p^{t-k}`` a pushforward may start from.
         horizon: frames after ``p^t`` an unrolled loss may reach (1: the next frame only).
+        cache_mb: trajectories kept in memory once read, up to this many MiB (per process: each
+            DataLoader worker has its own); past it, only the last one read. Shuffled windows
+            jump between trajectories, and reading one from the file costs more than building
+            the window (the default dataset's 40 MB train split is read once).
     """
 
     def __init__(self, split: Split, radius: float, history: int = 5, noise_std: float = 0.0,
-                 lead: int = 0, horizon: int = 1):
+                 lead: int = 0, horizon: int = 1, cache_mb: float = 1024.0):
         if lead < 0 or horizon < 1:
             raise ValueError(f"lead={lead} must be >= 0 and horizon={horizon} >= 1")
         self.split, self.radius, self.history, self.noise_std = split, radius, history, noise_std
         self.lead, self.horizon = lead, horizon
+        self.cache_bytes = int(cache_mb * 2**20)
+        self._kept: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._kept_bytes = 0
         self.window = history + 2
         # window (s, t) covers frames t-k-lead .. t+horizon; t runs over k+lead .. T-1-horizon
         self.index = [(s, t) for s, (frames, _, _) in enumerate(split.shapes)
@@ -71,10 +78,15 @@ class WindowDataset(Dataset):
         return len(self.index)
 
     def _trajectory(self, s: int) -> tuple[torch.Tensor, torch.Tensor]:
-        # consecutive windows of one trajectory are common (and whole trajectories are small)
+        if s in self._kept:
+            return self._kept[s]
         if self._cache is None or self._cache[0] != s:
             position, particle_type = self.split[s]
             self._cache = (s, torch.from_numpy(position), torch.from_numpy(particle_type))
+            size = position.nbytes + particle_type.nbytes
+            if self._kept_bytes + size <= self.cache_bytes:
+                self._kept[s] = self._cache[1:]
+                self._kept_bytes += size
         return self._cache[1], self._cache[2]
 
     def __getitem__(self, i: int) -> Data:
