@@ -36,6 +36,8 @@ class ParticleDataModule(L.LightningDataModule):
         lead, horizon: extra frames of each training window before and after it, for training
             through several steps (``module.pushforward``, ``module.unroll``; see
             :class:`~rgns.data.windows.WindowDataset`).
+        cache_mb: training trajectories kept in memory once read, per process (MiB; see
+            :class:`~rgns.data.windows.WindowDataset`).
     """
 
     def __init__(
@@ -49,6 +51,7 @@ class ParticleDataModule(L.LightningDataModule):
         lead: int = 0,
         horizon: int = 1,
         make_root: str | None = None,
+        cache_mb: float = 1024.0,
     ):
         super().__init__()
         if isinstance(history, bool) or not isinstance(history, int) or history < 1:
@@ -63,6 +66,7 @@ class ParticleDataModule(L.LightningDataModule):
         self.history, self.noise_std = history, noise_std
         self.batch_size, self.num_workers = batch_size, num_workers
         self.lead, self.horizon = lead, horizon
+        self.cache_mb = cache_mb
         self._contents: Contents | None = None
 
     def prepare_data(self) -> None:
@@ -114,7 +118,7 @@ class ParticleDataModule(L.LightningDataModule):
         self.check()
         if stage in (None, "fit"):
             self.train_set = WindowDataset(self.split("train"), self.radius, self.history, self.noise_std,
-                                           self.lead, self.horizon)
+                                           self.lead, self.horizon, self.cache_mb)
             self.valid_set = WindowDataset(self.split("valid"), self.radius, self.history, 0.0)
             self.valid_trajectories = TrajectoryDataset(self.split("valid"))
 
