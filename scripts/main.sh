@@ -59,9 +59,12 @@ fi
 phase "training, both processes (each run's own split of steps and validation: $out/train/<model>/timing.json)"
 
 echo "== 3/3 evaluation -> $out/evaluation"
-# every forward metric on all 8 test trajectories; the inverse at K = 1, 5, 20 and the table's 40
+# every forward metric on all 8 test trajectories; the inverse at K = 1, 5, 20 and the table's 40;
+# beside the fresh models, the long-trained ones of pretrained/waterdrop40_main/ (scripts/pretrain.sh)
+# that are there, labelled "pretrained" (docs/pretrained.md)
+pretrained=$(ls pretrained/waterdrop40_main/*.ckpt 2>/dev/null | paste -sd, - || true)
 .venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best trajectories=8 \
-  'task.inverse.horizons=[1,5,20,40]' hydra.run.dir="$out/evaluation"
+  'task.inverse.horizons=[1,5,20,40]' "pretrained=[$pretrained]" hydra.run.dir="$out/evaluation"
 phase "evaluation"
 
 ln -sfn "$(basename "$out")" outputs/main/latest

@@ -217,20 +217,23 @@ def test_evaluate_goal_task_writes_figure_gif_and_matching_table(trained, tmp_pa
     checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=goal", "goal.text=L", "goal.height=0.1",
-                                             "goal.steps=3", "task.goal.optimiser=null", "baselines=null",
+                                             "goal.steps=[2,3]", "task.goal.optimisers=null", "baselines=null",
                                              f"output_dir={tmp_path}", "trajectories=1"])
     results = evaluate(cfg)
     goal = results["datasets"]["data"]["goal"]
-    assert {"goal_L.png", "goal_L.gif"} <= set(goal["files"])
+    assert {"goal_L_K2.png", "goal_L_K3.gif"} <= set(goal["files"])
     assert all((tmp_path / "goal_data" / f).is_file() for f in goal["files"])
-    (label,) = goal["methods"]
+    assert goal["goal"]["place"] == "air" and goal["physics"]["solver"] is None  # the tiny dataset has no generator
+    assert "no generator" in goal["physics"]["note"] and goal["physics"]["train_max_speed"] > 0
     tables = markdown_tables((tmp_path / "report.md").read_text())
-    (table,) = [t for heading, t in tables.items() if heading.startswith("Goal-conditioned shaping on data")]
-    cells = dict(zip(table["Method"], table[label]))
-    metrics = goal["methods"][label]["metrics"]
-    assert value(cells["Chamfer (1e-5)"]) == pytest.approx(metrics["chamfer"] * 1e5, rel=1e-3)
-    assert value(cells["OT (1e-3)"]) == pytest.approx(metrics["ot"] * 1e3, rel=1e-3)
-    assert value(cells["Consistency MSE (1e-3)"]) == pytest.approx(metrics["consistency_mse"] * 1e3, rel=1e-3)
+    for K in ("2", "3"):
+        (label,) = goal["horizons"][K]["methods"]
+        table = tables[f"K = {K}"]  # the first table under the heading; the plausibility table follows it
+        cells = dict(zip(table["Method"], table[label]))
+        metrics = goal["horizons"][K]["methods"][label]["model"]
+        assert value(cells["Chamfer by model (1e-5)"]) == pytest.approx(metrics["chamfer"] * 1e5, rel=1e-3)
+        assert value(cells["OT by model (1e-3)"]) == pytest.approx(metrics["ot"] * 1e3, rel=1e-3)
+        assert cells["Chamfer by solver (1e-5)"] == "—"
 
 
 def test_two_dataset_folders_of_one_name_stay_apart(trained, tmp_path, monkeypatch):

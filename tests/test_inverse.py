@@ -1,19 +1,16 @@
-"""Inverse problems: the optimiser finds known answers, reports planted failures, and goal
-shapes render to the expected particles."""
-import json
+"""Inverse problems: the optimiser finds known answers and reports planted failures (goal shapes:
+tests/test_goal.py)."""
 import math
 
 import numpy as np
 import pytest
 import torch
-from scipy.spatial import cKDTree
 
 from rgns.data.contract import WATER
 from rgns.data.scenes import lattice
 from rgns.inverse.feedforward import feed_forward_inverse, forward_stability, inverse_stability
-from rgns.inverse.goal import GoalSpec, extrude, mask_to_points, render_text, run_goal, target_points
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
-from rgns.inverse.simulators import Ballistic, LearnedSimulator, dataset_spacing
+from rgns.inverse.simulators import Ballistic, LearnedSimulator
 from rgns.models import RGNS, State
 
 SPACING = 0.0065
@@ -179,68 +176,7 @@ def test_feed_forward_inverse_round_trip_and_stability():
     assert not backward["diverged"] and backward["stable_steps"] == 200
 
 
-# ---------------------------------------------------------------------------------------------- goal shapes
-def test_square_mask_gives_expected_count_and_spacing():
-    side, h = 20 * SPACING, SPACING
-    mask = np.ones((200, 200), bool)
-    points = mask_to_points(mask, side / 200, h)
-    assert len(points) == round(side / h) ** 2
-    distance, _ = cKDTree(points).query(points, k=2)
-    assert np.allclose(distance[:, 1], h, rtol=1e-6)
-
-
-def test_mask_with_a_hole_and_extrusion():
-    mask = np.ones((100, 100), bool)
-    mask[25:75, 25:75] = False  # a square ring: outer 20 h, hole 10 h
-    points = mask_to_points(mask, 20 * SPACING / 100, SPACING)
-    assert len(points) == 20**2 - 10**2
-    solid = extrude(points, depth=4 * SPACING, spacing=SPACING, centre=0.5)
-    assert solid.shape == (4 * len(points), 3)
-    assert np.allclose(np.unique(solid[:, 2]) - 0.5, (np.arange(4) - 1.5) * SPACING)
-
-
-def test_text_renders_to_particles_at_spacing_in_the_box():
-    mask = render_text("L")
-    assert mask.any() and mask[:, 0].any() and mask[-1].all()  # cropped to the ink; L's foot is its bottom row
-    spec = GoalSpec(text="LN", height=0.2)
-    points = target_points(spec, METADATA["bounds"], SPACING, dim=2)
-    distance, _ = cKDTree(points).query(points, k=2)
-    assert np.allclose(distance[:, 1], SPACING, rtol=1e-5)
-    assert points[:, 1].min() == pytest.approx(0.1 + SPACING / 2, abs=1e-6)  # standing on the floor
-    height = points[:, 1].max() - points[:, 1].min()
-    assert 0.2 - 2 * SPACING < height < 0.2  # cell centres inside a 0.2 m glyph
-    # the L's stem: a filled column, so its particle count is close to stem area / h^2
-    ink = render_text("L").mean()
-    expected = ink * render_text("L").shape[1] / render_text("L").shape[0] * 0.2**2 / SPACING**2
-    count = len(target_points(GoalSpec(text="L", height=0.2), METADATA["bounds"], SPACING, dim=2))
-    assert abs(count - expected) < 0.1 * expected
-    three = target_points(GoalSpec(text="L", height=0.2, depth=5 * SPACING), [[0.1, 0.9]] * 3, SPACING, dim=3)
-    assert len(three) == 5 * count
-
-
-def test_points_file_and_spacing_from_metadata_or_frame(tmp_path):
-    circle = np.array([[np.cos(a), np.sin(a)] for a in np.linspace(0, 2 * np.pi, 40, endpoint=False)]) * 0.1
-    np.save(tmp_path / "circle.npy", circle)
-    points = target_points(GoalSpec(points=str(tmp_path / "circle.npy"), place="centre"), METADATA["bounds"], SPACING, 2)
-    assert points.shape == (40, 2) and np.allclose(points.mean(0), 0.5, atol=1e-6)
-    with pytest.raises(ValueError, match="does not fit"):
-        target_points(GoalSpec(points=str(tmp_path / "circle.npy"), place="none"), METADATA["bounds"], SPACING, 2)
-    assert dataset_spacing(METADATA) == SPACING
-    frame = lattice(np.array([0.2, 0.2]), np.array([0.3, 0.3]), 0.01)
-    assert dataset_spacing({}, frame) == pytest.approx(0.01)
-
-
-def test_run_goal_writes_figure_gif_and_metrics(tmp_path):
-    model = RGNS(METADATA, latent=16, layers=2)
-    results = run_goal({"R-GNS": model}, METADATA, GoalSpec(text="L", height=0.06), tmp_path, steps=3)
-    row = results["methods"]["R-GNS"]
-    # untrained R-GNS from rest: the inferred initial state is the target, and so is the reproduction
-    assert row["metrics"]["chamfer"] < 1e-10 and row["metrics"]["consistency_mse"] < 1e-10
-    for name in results["files"]:
-        assert (tmp_path / name).stat().st_size > 0
-    assert json.loads((tmp_path / "goal_L.json").read_text())["particles"] == results["particles"]
-
-
+# ---------------------------------------------------------------------------------------------- MLS-MPM in torch
 def test_torch_mpm_follows_the_taichi_solver_and_optimises():
     """The differentiable MLS-MPM port matches rgns.physics.mpm.MPMSolver on a block that hits the
     floor, and Adam through it lowers the loss at a short horizon."""
@@ -258,3 +194,19 @@ def test_torch_mpm_follows_the_taichi_solver_and_optimises():
     target, _ = simulator.simulate(torch.as_tensor(x0), torch.as_tensor(v0) * 0.0025, 2)
     result = optimise_initial_state(simulator, target, 2, rule=StoppingRule(max_iterations=6))
     assert result.ok and result.loss < 0.5 * result.loss_history[0], result.reason
+
+
+def test_torch_mpm_puts_a_start_outside_the_box_on_its_walls():
+    """An optimiser's iterate can leave the box; the port starts it on the walls (as each substep puts
+    back a particle that crossed one) instead of indexing past its grid."""
+    from rgns.inverse.mpm import TorchMPM
+
+    simulator = TorchMPM()  # box [0.1, 0.9]^2, 3 cells of grid margin
+    inside = lattice(np.array([0.4, 0.4]), np.array([0.45, 0.45]), SPACING).astype(np.float32)
+    start = torch.as_tensor(inside)
+    start[0] = torch.tensor([-0.2, 0.5])  # 0.3 m (19 cells) left of the wall: past the grid
+    start[1] = torch.tensor([0.5, 1.3])  # above the ceiling
+    frames = simulator.trajectory(start, torch.zeros_like(start), 2)
+    assert torch.isfinite(frames).all()
+    assert frames[0, 0].tolist() == pytest.approx([0.1, 0.5]) and frames[0, 1].tolist() == pytest.approx([0.5, 0.9])
+    assert (frames[-1] >= 0.1).all() and (frames[-1] <= 0.9).all()

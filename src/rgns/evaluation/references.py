@@ -139,6 +139,21 @@ class SolverReference:
                     frames_per_trajectory=frames, ms_per_frame_per_trajectory={i: self.ms_per_frame(i) for i in frames})
 
 
+def rebuild_scene(metadata: dict, solver: dict | None = None, **scene):
+    """The scene a generated dataset was made with, from ``metadata["generator"]["params"]``, with
+    ``scene`` (e.g. ``capacity``) and ``solver`` (e.g. ``n_grid``, ``substeps``) changes applied.
+    Raises ``ValueError`` with a sentence where the metadata records no generator (a dataset
+    converted from DeepMind's files) and whatever the rebuild raises where it cannot be rebuilt."""
+    generator = metadata.get("generator")
+    if not isinstance(generator, dict) or not isinstance(generator.get("params"), dict):
+        raise ValueError("the metadata records no generator (a dataset converted from DeepMind's files), so there "
+                         "is no solver to re-run")
+    params = copy.deepcopy(generator["params"])
+    params.update(scene)
+    params["solver"] = {**params["solver"], **(solver or {})}
+    return instantiate(params)
+
+
 class SolverReferences:
     """The ``references:`` block of ``conf/evaluate.yaml``: builds a dataset's solver references.
 
@@ -189,9 +204,7 @@ class SolverReferences:
                       stored_n_grid=stored.get("n_grid"), stored_substeps=stored.get("substeps"))
 
         def rebuilt(**changes):
-            changed = copy.deepcopy(params)
-            changed["solver"].update(changes)
-            return instantiate(changed)
+            return rebuild_scene(dataset.metadata, solver=changes)
 
         references, notes = [], []
         if "n_grid" in stored:

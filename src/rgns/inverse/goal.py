@@ -1,28 +1,46 @@
 """Goal-conditioned shaping: steer a fluid into a target shape (the paper's letters "L" and "N").
 
 A target is given as text, an image mask or a point file, and becomes particles at the dataset's
-spacing, placed in the box, **at rest** (every slot of the velocity history zero: the goal is the
-shape standing still at frame K; no settling step is run, so the target is exactly the shape
-asked for). Then, per method:
+spacing, placed in the box with a velocity: by default **mid-air and at rest at frame K**
+(``place="air"``: centred in x (and z), its bottom ``lift`` metres above the floor; every slot of
+the velocity history zero), the top of a flight, so that earlier the water was lower and rising
+and an inverse model has to find that past. Any placement may be given a uniform velocity
+``velocity`` (m/s): every slot of the velocity history is then ``velocity * dt``, the per-frame
+displacement that :class:`rgns.models.State` holds. Per horizon K (several: ``steps``), and per method:
 
 - a bidirectional learned simulator (R-GNS, Sep-GNS): K inverse steps from the target to an
-  inferred initial state, then K forward steps from it to the reproduced state;
-- the optimisation baseline (differentiable SPH + Adam, :mod:`rgns.inverse.optimise`): the
-  initial state found by Adam from the target at rest (the same stopping rule as everywhere),
-  and SPH's K frames from it.
+  inferred initial state, then K forward steps from it to the model's reproduction;
+- optimisation baselines (``optimisers``: ``sph``, differentiable SPH + Adam; ``mpm``, MLS-MPM in
+  torch autograd + Adam; :func:`rgns.inverse.tasks._optimiser_simulator`): Adam from the target
+  (with its velocity) to reach the target positions and velocity at frame K, under one stopping
+  rule, and the optimiser's own simulator's K frames from the initial state it found;
+- **do nothing**: the target itself, with its velocity, as the initial state: what the shape
+  becomes if nobody plans.
 
-The reproduced shape is compared with the target by Chamfer distance and OT (squared W2), and
-by the per-particle MSE (the consistency MSE). Written: ``goal_<name>.png`` (rows = methods;
-columns = target, inferred initial state, reproduced state), ``goal_<name>.gif`` (each method's
-K forward frames from its initial state, the target behind) and ``goal_<name>.json``.
+**The physics check.** Every method's initial state (positions, and the velocity its newest
+history slot implies, divided by the frame time into m/s) is also run K frames forward by the
+dataset's own ground-truth solver (the scene the metadata's generator names, rebuilt by
+:func:`rgns.evaluation.references.rebuild_scene`: MLS-MPM for the water scenes, SPH for water3d),
+and the solver's final frame is compared with the target. Particles outside the box are first
+clamped onto it (the solver keeps none outside); the fraction clamped is reported. Each initial
+state is also checked for plausibility (:func:`plausibility`): the fraction inside the box, the
+fractions whose nearest neighbour is closer than ``OVERLAP`` (0.5) spacings (overlaps) or farther
+than ``ISOLATED`` (2) spacings (isolated particles, spray or holes), and its largest speed against
+the largest in the training data. A dataset without a generator gets no physics check (a sentence says why).
+
+The reproductions are compared with the target by Chamfer distance and OT (squared W2), and by
+the per-particle MSE (the consistency MSE). Written per K: ``goal_<name>_K<K>.png`` (rows =
+methods; columns = target, inferred initial state, reproduced by the model, reproduced by the
+solver) and ``goal_<name>_K<K>.gif`` (the solver's K frames from each method's initial state, the
+target behind; the model's where there is no solver), and ``goal_<name>.json``.
 
 3D: the 2D shape stands in the x-y plane (gravity along -y) and is extruded along z, centred
 in the box; figures show the x-y projection.
 
 Command line (works without ``evaluate.py``)::
 
-    python -m rgns.inverse.goal --ckpt A.ckpt [--ckpt B.ckpt] --text LN --out DIR
-    python -m rgns.inverse.goal --ckpt A.ckpt --points circle.npy --out DIR
+    python -m rgns.inverse.goal --ckpt A.ckpt [--ckpt B.ckpt] --text LN --steps 20 40 100 --out DIR
+    python -m rgns.inverse.goal --ckpt A.ckpt --points circle.npy --place centre --velocity 0 1 --out DIR
     python -m rgns.inverse.goal --ckpt A.ckpt --mask shape.png --out DIR
 """
 from __future__ import annotations
@@ -39,11 +57,12 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from rgns.data.contract import WATER
+from rgns.data.contract import KINEMATIC, WATER
 from rgns.evaluation.metrics import chamfer, optimal_transport
 from rgns.evaluation.plots import save_figure
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
-from rgns.inverse.simulators import SPHSimulator, dataset_spacing, sph_for_dataset
+from rgns.inverse.simulators import dataset_spacing
+from rgns.inverse.tasks import _optimiser_simulator, _warm_up
 from rgns.models import State
 
 log = logging.getLogger(__name__)
@@ -112,18 +131,20 @@ def extrude(points: np.ndarray, depth: float, spacing: float, centre: float) -> 
     return np.concatenate([np.column_stack([points, np.full(len(points), zi)]) for zi in z])
 
 
-def place(points: np.ndarray, bounds: np.ndarray, spacing: float, where: str = "floor") -> np.ndarray:
-    """Translate a shape into the box ``[D, 2]``: ``"floor"`` centred in x (and z) and standing half a
-    spacing above the floor (y = axis 1); ``"centre"`` centred in the box; ``"none"`` as given.
-    Raises if the shape does not fit."""
+def place(points: np.ndarray, bounds: np.ndarray, spacing: float, where: str = "air", lift: float = 0.1) -> np.ndarray:
+    """Translate a shape into the box ``[D, 2]``: ``"air"`` centred in x (and z), its bottom ``lift``
+    above the floor (y = axis 1); ``"floor"`` centred in x (and z) and standing half a spacing above
+    the floor; ``"centre"`` centred in the box; ``"none"`` as given. Raises if the shape does not fit."""
     points = np.asarray(points, dtype=np.float64)
     if where != "none":
         lower, upper = points.min(0), points.max(0)
         shift = 0.5 * (bounds[:, 0] + bounds[:, 1]) - 0.5 * (lower + upper)
         if where == "floor":
             shift[1] = bounds[1, 0] + 0.5 * spacing - lower[1]
+        elif where == "air":
+            shift[1] = bounds[1, 0] + lift - lower[1]
         elif where != "centre":
-            raise ValueError(f"place must be 'floor', 'centre' or 'none', got {where!r}")
+            raise ValueError(f"place must be 'air', 'floor', 'centre' or 'none', got {where!r}")
         points = points + shift
     if (points < bounds[:, 0]).any() or (points > bounds[:, 1]).any():
         raise ValueError(f"the shape (extent {points.min(0)} .. {points.max(0)}) does not fit in the box {bounds.tolist()}")
@@ -132,13 +153,16 @@ def place(points: np.ndarray, bounds: np.ndarray, spacing: float, where: str = "
 
 @dataclass
 class GoalSpec:
-    """What shape to make. Exactly one of ``text``, ``mask`` (an image file), ``points`` (``.npy`` or
-    ``.txt`` ``[M, D]`` or ``[M, 2]``, in metres).
+    """What shape to make, where, and how fast it moves at frame K. Exactly one of ``text``,
+    ``mask`` (an image file), ``points`` (``.npy`` or ``.txt`` ``[M, D]`` or ``[M, 2]``, in metres).
 
     Args:
         height: text and mask: the shape's height (m). width: mask only, its width instead (keeps the aspect).
         depth: 3D, the extrusion along z (m).
-        place: ``"floor"``, ``"centre"`` or ``"none"`` (see :func:`place`).
+        place: ``"air"``, ``"floor"``, ``"centre"`` or ``"none"`` (see :func:`place`).
+        lift: ``"air"``: the height of the shape's bottom above the floor (m).
+        velocity: the target's uniform velocity at frame K (m/s, ``[D]``, or ``[2]`` in 3D: z is 0);
+            ``None``: at rest.
         invert: mask: the shape is dark on a light ground.
         name: a name for the output files (default: the text, or the file's stem).
     """
@@ -149,7 +173,9 @@ class GoalSpec:
     height: float = 0.3
     width: float | None = None
     depth: float = 0.1
-    place: str = "floor"
+    place: str = "air"
+    lift: float = 0.1
+    velocity: list[float] | None = None
     invert: bool = False
     name: str | None = None
 
@@ -158,6 +184,15 @@ class GoalSpec:
         if self.name:
             return self.name
         return self.text if self.text else Path(self.mask or self.points).stem
+
+    def target_velocity(self, dim: int) -> np.ndarray:
+        """The target's velocity ``[dim]`` in m/s (zero at rest)."""
+        velocity = np.zeros(dim) if self.velocity is None else np.asarray(self.velocity, dtype=np.float64)
+        if velocity.shape == (2,) and dim == 3:
+            velocity = np.append(velocity, 0.0)
+        if velocity.shape != (dim,):
+            raise ValueError(f"goal velocity {self.velocity}: give {dim} components (m/s), or null for at rest")
+        return velocity
 
 
 def target_points(spec: GoalSpec, bounds, spacing: float, dim: int) -> np.ndarray:
@@ -179,54 +214,170 @@ def target_points(spec: GoalSpec, bounds, spacing: float, dim: int) -> np.ndarra
             raise ValueError(f"the shape {spec.label!r} has no particle at spacing {spacing}: make it larger")
     if dim == 3 and points.shape[1] == 2:
         points = extrude(points, spec.depth, spacing, 0.5 * (bounds[2, 0] + bounds[2, 1]))
-    return place(points, bounds, spacing, spec.place).astype(np.float32)
+    return place(points, bounds, spacing, spec.place, spec.lift).astype(np.float32)
 
 
-def at_rest(position: torch.Tensor, history: int, particle_type: torch.Tensor | None = None) -> State:
-    """The state of a shape at rest: every velocity of the history zero."""
+def target_state(position: torch.Tensor, history: int, velocity: torch.Tensor | None = None,
+                 particle_type: torch.Tensor | None = None) -> State:
+    """The target as a model's state: every slot of the velocity history is ``velocity`` ``[D]``,
+    a displacement per frame (m/s times the frame time, as :class:`State` holds velocities);
+    zero (at rest) when ``None``.  ``position [N, D] -> State(velocity_history [N, k, D])``"""
     if particle_type is None:
         particle_type = torch.full((len(position),), WATER, dtype=torch.long)
-    return State(position, torch.zeros(len(position), history, position.shape[-1]), particle_type)
+    velocity = torch.zeros(position.shape[-1]) if velocity is None else torch.as_tensor(velocity)
+    velocity_history = velocity.to(position).expand(len(position), history, position.shape[-1]).clone()  # [N, k, D]
+    return State(position, velocity_history, particle_type)
+
+
+# ---------------------------------------------------------------------------------------------- the physics check
+OVERLAP = 0.5  # a nearest neighbour closer than this many spacings: two particles on top of each other
+ISOLATED = 2.0  # farther than this many: a particle with no neighbour at the lattice distance (spray, a hole)
+
+
+def plausibility(position: np.ndarray, velocity: np.ndarray, bounds, spacing: float, dt: float,
+                 max_speed: float | None = None) -> dict:
+    """How physical an initial state ``position [N, D]`` with per-frame ``velocity [N, D]`` looks:
+    the fraction inside the box ``bounds``, the fractions whose nearest neighbour is closer than
+    ``OVERLAP`` or farther than ``ISOLATED`` spacings, the largest speed (m/s) against ``max_speed``
+    (the training data's), the mean velocity (m/s), and ``flags``: a sentence per check that fails."""
+    from scipy.spatial import cKDTree
+
+    position, bounds = np.asarray(position, dtype=np.float64), np.asarray(bounds, dtype=np.float64)
+    if not (np.isfinite(position).all() and np.isfinite(velocity).all()):
+        return dict(finite=False, flags=["not finite"])
+    inside = float(((position >= bounds[:, 0]) & (position <= bounds[:, 1])).all(1).mean())
+    distance, _ = cKDTree(position).query(position, k=2)
+    nearest = distance[:, 1] / spacing  # [N], in spacings
+    speed = float(np.linalg.norm(velocity, axis=1).max()) / dt
+    result = dict(finite=True, inside_box=inside, overlapping=float((nearest < OVERLAP).mean()),
+                  isolated=float((nearest > ISOLATED).mean()), nearest_median=float(np.median(nearest)),
+                  max_speed=speed, train_max_speed=max_speed, mean_velocity=(np.mean(velocity, 0) / dt).tolist())
+    flags = []
+    if inside < 1:
+        flags.append(f"{1 - inside:.1%} outside the box")
+    if result["overlapping"] > 0:
+        flags.append(f"{result['overlapping']:.1%} overlapping (< {OVERLAP} spacing)")
+    if result["isolated"] > 0:
+        flags.append(f"{result['isolated']:.1%} isolated (> {ISOLATED} spacings)")
+    if max_speed is not None and speed > max_speed:
+        flags.append(f"max speed {speed:.2f} m/s over the training data's {max_speed:.2f}")
+    return dict(result, flags=flags)
+
+
+def data_max_speed(trajectories, dt: float) -> float:
+    """The largest speed (m/s) of the moving particles in ``[(position [T, N, D], particle_type [N])]``."""
+    speeds = [np.linalg.norm(np.diff(np.asarray(p)[:, np.asarray(t) != KINEMATIC], axis=0), axis=-1).max()
+              for p, t in trajectories]
+    return float(max(speeds)) / dt
+
+
+class GroundTruthSolver:
+    """The dataset's own solver (:func:`rgns.evaluation.references.rebuild_scene`), run K frames from
+    an initial state in the box; positions outside it are clamped onto its walls first.
+
+    Args:
+        scene: the rebuilt scene (its ``solver``, ``bounds``, ``dt``, ``material``).
+    """
+
+    def __init__(self, scene):
+        self.scene = scene
+        self.label = type(scene.solver).__name__.removesuffix("Solver")
+        self._warm = False
+
+    @classmethod
+    def for_dataset(cls, metadata: dict, particles: int) -> tuple["GroundTruthSolver | None", str | None]:
+        """The solver of a generated dataset, with room for ``particles``; or ``None`` and the reason."""
+        from rgns.evaluation.references import rebuild_scene
+
+        capacity = int(((metadata.get("generator") or {}).get("params") or {}).get("capacity", 0))
+        try:
+            return cls(rebuild_scene(metadata, capacity=max(capacity, particles))), None
+        except Exception as error:  # noqa: BLE001 - no physics check is reported, not raised
+            return None, f"No physics check: {error}."
+
+    def run(self, position: np.ndarray, velocity: np.ndarray, steps: int) -> tuple[np.ndarray | None, dict]:
+        """Frames ``0 .. steps`` ``[K + 1, N, D]`` from ``position`` with per-frame ``velocity``
+        ``[N, D]``, and what happened: ``clamped`` (the fraction moved into the box), ``seconds``,
+        ``error`` (the solver failed or the state is not finite: no frames)."""
+        from rgns.physics import runtime
+
+        if not (np.isfinite(position).all() and np.isfinite(velocity).all()):
+            return None, dict(error="the initial state is not finite")
+        inside = np.clip(position, self.scene.lower, self.scene.upper)
+        clamped = float((inside != position).any(1).mean())
+        material = np.full(len(inside), self.scene.material, np.int64)
+        velocity = np.asarray(velocity, dtype=np.float64) / self.scene.dt  # per frame -> m/s
+        runtime.ensure_taichi()
+        if not self._warm:  # Taichi compiles its kernels on the first call: not timed
+            self.scene.solver.rollout(inside, velocity, material, 2)
+            self._warm = True
+        begin = time.perf_counter()
+        try:
+            frames = self.scene.solver.rollout(inside, velocity, material, steps + 1)
+        except Exception as error:  # noqa: BLE001 - a failed run is a result
+            return None, dict(clamped=clamped, error=f"{type(error).__name__}: {error}")
+        return frames, dict(clamped=clamped, seconds=time.perf_counter() - begin)
 
 
 # ---------------------------------------------------------------------------------------------- methods
 @dataclass
 class GoalRun:
-    """One method's goal-conditioned result."""
+    """One method's goal-conditioned result at one K."""
 
     label: str
-    initial: np.ndarray  # [N, D] inferred initial state's positions
-    trajectory: np.ndarray  # [K + 1, N, D] forward from the initial state; trajectory[-1] reproduces the target
+    initial: np.ndarray  # [N, D] the initial state's positions
+    velocity: np.ndarray  # [N, D] its newest velocity, per frame
+    trajectory: np.ndarray | None  # [K + 1, N, D] its own simulator from the initial state (None: no model)
     seconds: float  # inverse inference (or optimisation) time
     extra: dict = field(default_factory=dict)
+    solver: np.ndarray | None = None  # [K + 1, N, D] the ground-truth solver from the initial state
 
 
 @torch.no_grad()
-def feed_forward_goal(model, target: torch.Tensor, steps: int, label: str) -> GoalRun:
-    """K inverse steps of a bidirectional simulator from the target at rest, then K forward steps."""
-    state = at_rest(target, model.history)
+def feed_forward_goal(model, target: State, steps: int, label: str) -> GoalRun:
+    """K inverse steps of a bidirectional simulator from the target state, then K forward steps."""
+    state = target
     begin = time.perf_counter()
     for _ in range(steps):
         state = model.inverse_step(state)
     seconds = time.perf_counter() - begin
     forward = model.rollout(state, steps)
     trajectory = torch.cat([state.position.unsqueeze(0), forward]).numpy()
-    return GoalRun(label, state.position.numpy(), trajectory, seconds, dict(status="feed_forward"))
+    return GoalRun(label, state.position.numpy(), state.velocity_history[:, -1].numpy(), trajectory, seconds,
+                   dict(status="feed_forward"))
 
 
-def sph_goal(target: torch.Tensor, steps: int, metadata: dict, rule: StoppingRule, label: str = "SPH + Adam",
-             substeps: int = 25, solver=None, **options) -> GoalRun:
-    """The optimisation baseline: Adam through the differentiable SPH from the target at rest
-    (the goal includes being at rest: the final velocity is asked to be zero)."""
-    solver = solver or sph_for_dataset(metadata, capacity=len(target), substeps=substeps)
-    simulator = SPHSimulator(solver)
-    result = optimise_initial_state(simulator, target, steps, target_velocity=torch.zeros_like(target), rule=rule,
-                                    **options)
+def optimiser_goal(kind: str, options: dict, metadata: dict, target: torch.Tensor, velocity: torch.Tensor,
+                   steps: int, rule: StoppingRule) -> GoalRun:
+    """An optimisation baseline (``kind`` ``sph`` or ``mpm``, :func:`rgns.inverse.tasks._optimiser_simulator`):
+    Adam from the target with its velocity ``[D]`` (per frame), asked to reach the target positions
+    and that velocity at frame K; its own simulator's K frames from the initial state it found.
+    ``options``: ``lr``, ``velocity_lr``, ``clip``, ``schedule``, ``substeps`` (sph), ``solver`` (mpm),
+    and ``rule`` (this optimiser's changes to the stopping rule, e.g. a lower ``max_iterations``)."""
+    particle_type = torch.full((len(target),), WATER, dtype=torch.long)
+    simulator, label = _optimiser_simulator(kind, options, metadata, {}, len(target), particle_type)
+    target_velocity = velocity.to(target).expand_as(target).clone()  # [N, D]
+    _warm_up(simulator, target, target_velocity)
+    rule = StoppingRule(**{**vars(rule), **options.get("rule", {})})
+    solve = {k: options[k] for k in ("lr", "velocity_lr", "clip", "schedule") if k in options}
+    result = optimise_initial_state(simulator, target, steps, init_position=target, init_velocity=target_velocity,
+                                    target_velocity=target_velocity, rule=rule, **solve)
     trajectory = simulator.trajectory(result.initial_position, result.initial_velocity, steps).numpy()
-    return GoalRun(label, result.initial_position.numpy(), trajectory, result.seconds, result.summary())
+    return GoalRun(label, result.initial_position.numpy(), result.initial_velocity.detach().numpy(), trajectory,
+                   result.seconds, result.summary())
 
 
-def shape_metrics(reproduced: np.ndarray, target: np.ndarray) -> dict:
+def do_nothing(target: torch.Tensor, velocity: torch.Tensor) -> GoalRun:
+    """The target itself, with its velocity ``[D]`` (per frame), as the initial state: no planning."""
+    return GoalRun("do nothing", target.numpy(), velocity.to(target).expand_as(target).numpy().copy(), None, 0.0,
+                   dict(status="no planning"))
+
+
+def shape_metrics(reproduced: np.ndarray | None, target: np.ndarray) -> dict | None:
+    """Chamfer, OT and the per-particle MSE of a reproduced shape ``[N, D]`` against the target;
+    ``None`` where there is none, ``None`` values where it is not finite."""
+    if reproduced is None:
+        return None
     x, y = torch.as_tensor(reproduced, dtype=torch.float64), torch.as_tensor(target, dtype=torch.float64)
     if not torch.isfinite(x).all():
         return dict(chamfer=None, ot=None, consistency_mse=None)
@@ -243,8 +394,16 @@ def _scatter(ax, points: np.ndarray, bounds: np.ndarray, colour, size: float, al
     ax.set_yticks([])
 
 
+def _chamfer_title(name: str, metrics: dict | None) -> str:
+    if metrics is None:
+        return f"{name}: none"
+    value = metrics.get("chamfer")
+    return f"{name} (Chamfer {value:.2e})" if value is not None else f"{name} (non-finite)"
+
+
 def goal_figure(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, title: str) -> None:
-    """Rows = methods; columns = target, inferred initial state, reproduced state (x-y plane)."""
+    """Rows = methods; columns = target, inferred initial state, reproduced by the model, reproduced
+    by the solver (x-y plane)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -252,30 +411,31 @@ def goal_figure(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, tit
 
     bounds = np.asarray(bounds)
     size = max(0.5, min(6.0, 4000 / max(len(target), 1)))
-    fig, axes = plt.subplots(len(runs), 3, figsize=(9, 3 * len(runs)), squeeze=False)
+    fig, axes = plt.subplots(len(runs), 4, figsize=(12, 3 * len(runs)), squeeze=False)
     for row, run in zip(axes, runs):
-        finite = np.isfinite(run.trajectory[-1]).all()
         _scatter(row[0], target, bounds, "tab:blue", size)
         _scatter(row[1], run.initial, bounds, "tab:orange", size)
-        _scatter(row[2], target, bounds, "lightgrey", size)
-        if finite:
-            _scatter(row[2], run.trajectory[-1], bounds, "tab:green", size)
+        for ax, frames in ((row[2], run.trajectory), (row[3], run.solver)):
+            _scatter(ax, target, bounds, "lightgrey", size)
+            if frames is not None and np.isfinite(frames[-1]).all():
+                _scatter(ax, frames[-1], bounds, "tab:green", size)
         row[0].set_ylabel(run.label, fontsize=11)
-        metrics = run.extra.get("metrics", {})
-        chamfer_value = metrics.get("chamfer")
-        row[2].set_title("reproduced" + (f" (Chamfer {chamfer_value:.2e})" if chamfer_value is not None else
-                                         " (non-finite)"), fontsize=9)
-        status = run.extra.get("status", "feed_forward")
-        note = "" if status == "feed_forward" else f", {status}"
-        row[1].set_title(f"inferred initial state ({run.seconds:.2f} s{note})", fontsize=9)
         row[0].set_title("target", fontsize=9)
+        status = run.extra.get("status", "feed_forward")
+        note = "" if status in ("feed_forward", "no planning") else f", {status}"
+        flags = run.extra.get("plausibility", {}).get("flags")
+        row[1].set_title(f"initial state ({run.seconds:.2f} s{note})" + ("\n" + "; ".join(flags) if flags else ""),
+                         fontsize=7 if flags else 9)
+        row[2].set_title(_chamfer_title("by the model", run.extra.get("model")), fontsize=9)
+        row[3].set_title(_chamfer_title("by the solver", run.extra.get("solver")), fontsize=9)
     fig.suptitle(title)
     save_figure(fig, path)
 
 
 def goal_animation(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, fps: int = 10,
                    max_frames: int = 60) -> None:
-    """One panel per method: its K forward frames from the inferred initial state, the target behind."""
+    """One panel per method: the solver's K frames from its initial state (the model's where there
+    is no solver run), the target behind."""
     import imageio.v2 as imageio
     import matplotlib
 
@@ -284,17 +444,22 @@ def goal_animation(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, 
 
     bounds = np.asarray(bounds)
     size = max(0.5, min(6.0, 4000 / max(len(target), 1)))
-    length = max(len(r.trajectory) for r in runs)
+    shown = [(run, run.solver if run.solver is not None else run.trajectory,
+              "solver" if run.solver is not None else "model") for run in runs]
+    shown = [(run, frames, by) for run, frames, by in shown if frames is not None]
+    if not shown:
+        return
+    length = max(len(frames) for _, frames, _ in shown)
     frames_at = np.unique(np.linspace(0, length - 1, min(length, max_frames)).round().astype(int))
     images = []
     for t in frames_at:
-        fig, axes = plt.subplots(1, len(runs), figsize=(3.2 * len(runs), 3.4), squeeze=False)
-        for ax, run in zip(axes[0], runs):
-            frame = run.trajectory[min(t, len(run.trajectory) - 1)]
+        fig, axes = plt.subplots(1, len(shown), figsize=(3.2 * len(shown), 3.4), dpi=80, squeeze=False)
+        for ax, (run, frames, by) in zip(axes[0], shown):
+            frame = frames[min(t, len(frames) - 1)]
             _scatter(ax, target, bounds, "lightgrey", size)
             if np.isfinite(frame).all():
                 _scatter(ax, frame, bounds, "tab:blue", size)
-            ax.set_title(f"{run.label}: frame {min(t, len(run.trajectory) - 1)}", fontsize=9)
+            ax.set_title(f"{run.label} ({by}): frame {min(t, len(frames) - 1)}", fontsize=8)
         fig.tight_layout()
         fig.canvas.draw()
         images.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
@@ -303,76 +468,117 @@ def goal_animation(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, 
 
 
 # ---------------------------------------------------------------------------------------------- entry points
-def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, steps: int = 20,
-             optimiser: dict | None = None, frame: np.ndarray | None = None, fps: int = 10) -> dict:
-    """The goal-conditioned task for several methods on one dataset; writes figure, GIF and JSON.
+def _horizons(steps) -> list[int]:
+    horizons = [steps] if isinstance(steps, int) else list(steps)
+    if not horizons or min(horizons) < 1:
+        shown = steps if isinstance(steps, int) else horizons
+        raise ValueError(f"goal.steps={shown}: K, the inverse steps from the target, must be at least 1")
+    return sorted(set(horizons))
+
+
+def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, steps=(20, 40, 100),
+             optimisers: dict | None = None, rule: dict | None = None, frame: np.ndarray | None = None,
+             max_speed: float | None = None, physics: bool = True, fps: int = 10) -> dict:
+    """The goal-conditioned task for several methods on one dataset; writes figures, GIFs and JSON.
 
     Args:
         models: ``{label: Simulator}``; the bidirectional ones run feed-forward inverse inference.
-        metadata: the dataset's ``metadata.json`` (box, spacing or ``frame``, frame time, gravity).
+        metadata: the dataset's ``metadata.json`` (box, spacing or ``frame``, frame time, gravity;
+            its ``generator`` for the physics check).
         spec: the :class:`GoalSpec`.
-        out_dir: where ``goal_<name>.{png,gif,json}`` go.
-        steps: K.
-        optimiser: the SPH + Adam baseline's settings, ``None`` to skip it:
-            ``{"rule": {StoppingRule fields}, "lr": ..., "clip": ..., "schedule": ..., "substeps": ...}``.
+        out_dir: where ``goal_<name>_K<K>.{png,gif}`` and ``goal_<name>.json`` go.
+        steps: K, one or several.
+        optimisers: ``{kind: options}``, kind ``sph`` or ``mpm`` (see :func:`optimiser_goal`;
+            ``horizons``: only these K); ``None``: none.
+        rule: the :class:`StoppingRule` fields every optimiser shares.
         frame: ``[N, D]`` a dataset frame to measure the spacing from, when the metadata has none.
+        max_speed: the training data's largest speed (m/s), for the plausibility check (``None``: not checked).
+        physics: run each initial state forward by the dataset's own solver (and the do-nothing baseline).
 
-    Returns the JSON written: target size and spacing, and per method its metrics (Chamfer, OT,
-    consistency MSE), seconds and status.
+    Returns the JSON written: the target (size, spacing, velocity), the physics check's solver (or
+    why there is none), and per K and method: ``model`` and ``solver`` metrics (Chamfer, OT,
+    consistency MSE) of the two reproductions, ``plausibility``, ``seconds``, ``status``.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    horizons = _horizons(steps)
     spacing = dataset_spacing(metadata, frame)
-    dim = int(metadata["dim"])
-    target = torch.as_tensor(target_points(spec, metadata["bounds"], spacing, dim))
-    log.info("goal %r: %d particles at spacing %g", spec.label, len(target), spacing)
-    runs = []
-    for label, model in models.items():
-        if not model.bidirectional:
-            log.info("%s: forward-only, skipped (no inverse)", label)
-            continue
-        runs.append(feed_forward_goal(model, target, steps, label))
-    if optimiser is not None and dim in (2, 3):
-        options = dict(optimiser)
-        rule = StoppingRule(**options.pop("rule", {}))
-        runs.append(sph_goal(target, steps, metadata, rule, **options))
-    target_np = target.numpy()
-    for run in runs:
-        run.extra["metrics"] = shape_metrics(run.trajectory[-1], target_np)
+    dim, dt, bounds = int(metadata["dim"]), float(metadata["dt"]), metadata["bounds"]
+    target = torch.as_tensor(target_points(spec, bounds, spacing, dim))
+    velocity_si = spec.target_velocity(dim)
+    velocity = torch.as_tensor(velocity_si * dt, dtype=torch.float32)  # per frame, as State holds it
+    log.info("goal %r: %d particles at spacing %g, velocity %s m/s", spec.label, len(target), spacing, velocity_si)
+    solver, note = GroundTruthSolver.for_dataset(metadata, len(target)) if physics else (None, "No physics check (physics=false).")
+    stopping = StoppingRule(**(rule or {}))
     name = "".join(c if c.isalnum() else "_" for c in spec.label)
-    title = f"goal {spec.label!r}: {len(target)} particles, K = {steps}"
-    goal_figure(target_np, runs, metadata["bounds"], out_dir / f"goal_{name}.png", title)
-    goal_animation(target_np, runs, metadata["bounds"], out_dir / f"goal_{name}.gif", fps=fps)
-    results = dict(goal=vars(spec), particles=len(target), spacing=spacing, steps=steps, dim=dim,
-                   state_at_rest="velocity history all zero",
-                   methods={r.label: dict(r.extra, seconds=r.seconds) for r in runs},
-                   files=[f"goal_{name}.png", f"goal_{name}.gif", f"goal_{name}.json"])
+    target_np, files, per_k = target.numpy(), [], {}
+    for K in horizons:
+        runs = []
+        for label, model in models.items():
+            if not model.bidirectional:
+                log.info("%s: forward-only, skipped (no inverse)", label)
+                continue
+            runs.append(feed_forward_goal(model, target_state(target, model.history, velocity), K, label))
+        for kind, options in (optimisers or {}).items():
+            options = dict(options or {})
+            if "horizons" in options and K not in options["horizons"]:
+                continue
+            runs.append(optimiser_goal(kind, options, metadata, target, velocity, K, stopping))
+        if solver is not None:
+            runs.append(do_nothing(target, velocity))
+        for run in runs:
+            run.extra["model"] = shape_metrics(None if run.trajectory is None else run.trajectory[-1], target_np)
+            run.extra["plausibility"] = plausibility(run.initial, run.velocity, bounds, spacing, dt, max_speed)
+            run.extra["centre_shift"] = (run.initial.mean(0) - target_np.mean(0)).tolist()  # m, initial state - target
+            if solver is not None:
+                run.solver, info = solver.run(run.initial, run.velocity, K)
+                reproduced = None if run.solver is None else run.solver[-1]
+                run.extra["solver"] = dict(shape_metrics(reproduced, target_np) or {}, **info)
+            log.info("K=%d, %s: model %s, solver %s", K, run.label, run.extra["model"], run.extra.get("solver"))
+        title = f"goal {spec.label!r}: {len(target)} particles, K = {K}"
+        goal_figure(target_np, runs, bounds, out_dir / f"goal_{name}_K{K}.png", title)
+        goal_animation(target_np, runs, bounds, out_dir / f"goal_{name}_K{K}.gif", fps=fps)
+        files += [f"goal_{name}_K{K}.png", f"goal_{name}_K{K}.gif"]
+        per_k[str(K)] = dict(methods={r.label: dict(r.extra, seconds=r.seconds) for r in runs})
+    results = dict(goal=vars(spec), particles=len(target), spacing=spacing, steps=horizons, dim=dim,
+                   velocity=velocity_si.tolist(),
+                   velocity_history=f"every slot {velocity.tolist()} per frame (the velocity x dt {dt:g} s)",
+                   physics=dict(solver=None if solver is None else solver.label, note=note,
+                                thresholds=dict(overlap=OVERLAP, isolated=ISOLATED), train_max_speed=max_speed),
+                   horizons=per_k, files=files + [f"goal_{name}.json"])
     (out_dir / f"goal_{name}.json").write_text(json.dumps(results, indent=2) + "\n")
     return results
 
 
 class GoalShaping:
     """:func:`run_goal` as an ``evaluate.py`` task (``task(methods, dataset) -> (results, examples)``),
-    e.g. ``task=goal goal.text=LN``; files go to ``<out_dir>/goal_<dataset>/``.
+    e.g. ``task=goal goal.text=LN``; files go to ``<out_dir>/goal_<dataset>/``. The training data's
+    largest speed comes from its first ``speed_trajectories`` train trajectories.
 
-    Args: ``out_dir`` (the run folder), ``steps`` (K), ``optimiser`` (as :func:`run_goal`, ``None``
-    to skip SPH + Adam), and the :class:`GoalSpec` fields (``text``, ``mask``, ``points``, ``height``, ...).
+    Args: ``out_dir`` (the run folder), ``steps`` (K, one or a list), ``optimisers`` and ``rule``
+    (as :func:`run_goal`, ``None``: none), ``physics``, and the :class:`GoalSpec` fields (``text``,
+    ``mask``, ``points``, ``height``, ``place``, ``lift``, ``velocity``, ...).
     """
 
     name = "goal"
 
-    def __init__(self, out_dir: str, steps: int = 20, optimiser: dict | None = None, **shape):
-        if steps < 1:
-            raise ValueError(f"goal.steps={steps}: K, the inverse steps from the target, must be at least 1")
-        self.out_dir, self.steps, self.optimiser = out_dir, steps, optimiser
+    def __init__(self, out_dir: str, steps=(20, 40, 100), optimisers: dict | None = None, rule: dict | None = None,
+                 physics: bool = True, speed_trajectories: int = 2, **shape):
+        self.steps = _horizons(steps)
+        self.out_dir, self.optimisers, self.rule, self.physics = out_dir, optimisers, rule, physics
+        self.speed_trajectories = speed_trajectories
         self.spec = GoalSpec(**shape)
 
     def __call__(self, methods, dataset) -> tuple[dict, dict]:
-        models = {m.label: m.model for m in methods}
+        from rgns.data.contract import open_split
+
+        models = {m.label: m.model for m in methods if m.model is not None}
         frame = dataset.trajectories[0][0][0].cpu().numpy()
-        optimiser = None if self.optimiser is None else json.loads(json.dumps(dict(self.optimiser)))
+        with open_split(dataset.root, "train") as data:
+            train = [data[i] for i in range(min(self.speed_trajectories, len(data)))]
+        max_speed = data_max_speed(train, float(dataset.metadata["dt"])) if train else None
         results = run_goal(models, dataset.metadata, self.spec, Path(self.out_dir) / f"goal_{dataset.name}",
-                           self.steps, optimiser, frame)
+                           self.steps, self.optimisers, self.rule, frame, max_speed, self.physics)
         return results, {}
 
 
@@ -395,15 +601,20 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--invert", action="store_true")
     parser.add_argument("--height", type=float, default=0.3, help="text/mask height (m)")
     parser.add_argument("--depth", type=float, default=0.1, help="3D extrusion along z (m)")
-    parser.add_argument("--place", default="floor", choices=["floor", "centre", "none"])
-    parser.add_argument("--steps", type=int, default=20, help="K")
+    parser.add_argument("--place", default="air", choices=["air", "floor", "centre", "none"])
+    parser.add_argument("--lift", type=float, default=0.1, help="--place air: the shape's bottom above the floor (m)")
+    parser.add_argument("--velocity", type=float, nargs="+", help="the target's velocity at frame K (m/s; default: at rest)")
+    parser.add_argument("--steps", type=int, nargs="+", default=[20, 40, 100], help="K, one or several")
     parser.add_argument("--data-root", help="the dataset (default: the first checkpoint's)")
-    parser.add_argument("--no-optimiser", action="store_true", help="skip the SPH + Adam baseline")
-    parser.add_argument("--iterations", type=int, default=30, help="SPH + Adam iteration cap")
+    parser.add_argument("--optimisers", nargs="*", default=["sph"], help="sph, mpm (none: no optimisation baseline)")
+    parser.add_argument("--iterations", type=int, default=30, help="the stopping rule's iteration cap")
+    parser.add_argument("--no-physics", action="store_true", help="skip the ground-truth solver's check")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
-    if args.steps < 1 or args.iterations < 1:
-        parser.error(f"--steps {args.steps} and --iterations {args.iterations}: each must be at least 1")
+    if min(args.steps) < 1 or args.iterations < 1:
+        parser.error(f"--steps {' '.join(map(str, args.steps))} and --iterations {args.iterations}: each must be at least 1")
+    if not set(args.optimisers) <= {"sph", "mpm"}:
+        parser.error(f"--optimisers {' '.join(args.optimisers)}: the kinds are sph and mpm")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
 
@@ -421,14 +632,16 @@ def main(argv: list[str] | None = None) -> dict:
     metadata = contents.metadata
     with open_split(root, "train") as data:
         frame = data[0][0][0]
+        max_speed = data_max_speed([data[i] for i in range(min(2, len(data)))], float(metadata["dt"]))
     spec = GoalSpec(text=args.text, mask=args.mask, points=args.points, height=args.height, depth=args.depth,
-                    place=args.place, invert=args.invert)
-    optimiser = None if args.no_optimiser else dict(rule=dict(max_iterations=args.iterations))
-    results = run_goal(models, metadata, spec, args.out, args.steps, optimiser, frame)
-    for label, row in results["methods"].items():
-        m = row["metrics"]
-        print(f"{label:32s} chamfer={m['chamfer']} ot={m['ot']} consistency_mse={m['consistency_mse']} "
-              f"seconds={row['seconds']:.3f} status={row.get('status')}")
+                    place=args.place, lift=args.lift, velocity=args.velocity, invert=args.invert)
+    results = run_goal(models, metadata, spec, args.out, args.steps, {kind: {} for kind in args.optimisers},
+                       dict(max_iterations=args.iterations), frame, max_speed, not args.no_physics)
+    for K, at in results["horizons"].items():
+        for label, row in at["methods"].items():
+            model, solver = row["model"] or {}, row.get("solver") or {}
+            print(f"K={K:>4} {label:32s} chamfer model={model.get('chamfer')} solver={solver.get('chamfer')} "
+                  f"seconds={row['seconds']:.3f} status={row.get('status')} flags={row['plausibility']['flags']}")
     print(f"wrote {', '.join(str(Path(args.out) / f) for f in results['files'])}")
     return results
 

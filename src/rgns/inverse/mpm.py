@@ -133,7 +133,10 @@ class TorchMPM:
 
     # ------------------------------------------------------------------ the simulator interface
     def _run(self, position: Tensor, velocity: Tensor, steps: int, keep: bool = False):
-        x, v = position, velocity / self.frame_dt  # per frame -> m/s
+        # a start outside the box (an optimiser's iterate can drift there) goes onto its walls, as every
+        # substep puts back a particle that crossed one: the grid covers the box and three cells more
+        x = torch.maximum(torch.minimum(position, self.upper), self.lower)
+        v = velocity / self.frame_dt  # per frame -> m/s
         C = torch.zeros(len(x), self.dim, self.dim, dtype=x.dtype)
         J = torch.ones(len(x), dtype=x.dtype)
         frames = [x.detach()]
