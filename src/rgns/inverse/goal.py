@@ -583,8 +583,8 @@ class GoalShaping:
 
 
 def _label(model, extras: dict, path: str) -> str:
-    names = {"RGNS": "R-GNS", "SepGNS": "Sep-GNS", "GNS": "GNS"}
-    return f"{names.get(type(model).__name__, type(model).__name__)} ({Path(path).parent.parent.name})"
+    name = getattr(type(model), "display_name", "") or type(model).__name__  # as the models name themselves
+    return f"{name} ({Path(path).parent.parent.name})"
 
 
 def main(argv: list[str] | None = None) -> dict:
