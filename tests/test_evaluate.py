@@ -72,6 +72,15 @@ def test_labels_follow_the_paper_and_sweeps_stay_apart():
     assert describe({"_target_": "rgns.models.RGNS", "latent": 128, "layers": 10}) == "R-GNS 128x10"
     assert describe({"_target_": "rgns.models.RGNS", "latent": 64, "layers": 5, "train_inverse": False}) == "R-GNS† 64x5"
     assert describe({"_target_": "rgns.models.RGNS", "latent": 8, "layers": 2, "encoder": "mlp"}) == "R-GNS 8x2 MLP enc."
+    # the basis where it is not the model's usual one (conf/model/): GNS reads velocities, R-GNS differences
+    assert describe({"_target_": "rgns.models.GNS", "latent": 32, "layers": 4, "basis": "differences"}) == \
+        "GNS 32x4 differences basis"
+    assert describe({"_target_": "rgns.models.SepGNS", "latent": 32, "layers": 4, "basis": "differences"}) == \
+        "Sep-GNS 32x4 differences basis"
+    assert describe({"_target_": "rgns.models.GNS", "latent": 32, "layers": 4, "basis": "velocity"}) == "GNS 32x4"
+    assert describe({"_target_": "rgns.models.RGNS", "latent": 32, "layers": 2, "basis": "differences"}) == "R-GNS 32x2"
+    assert describe({"_target_": "rgns.models.RGNS", "latent": 32, "layers": 2, "basis": "velocity"}) == \
+        "R-GNS 32x2 velocity basis"
     methods = [Method("R-GNS 16x2", None, None, f"/m/{i}/checkpoints/last.ckpt",
                       dict(overrides=["model.latent=16", f"loss={loss}"])) for i, loss in enumerate(("dl1", "dl4"))]
     _disambiguate(methods)

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import lightning as L
 import numpy as np
@@ -27,6 +29,8 @@ from rgns.evaluation.tasks import Dataset, InverseConsistency
 from rgns.inverse import tasks as inverse_tasks
 from rgns.inverse.goal import main as goal_main
 from rgns.training.module import CheckpointError, SimulatorModule, load_simulator
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # evaluations that do little once their inputs pass: the checks under test run before any task
 COMMON = ["baselines=null", "references=null", "animation.max_frames=2"]
@@ -58,8 +62,9 @@ def edit_metadata(folder: Path, **changes) -> Path:
     return path
 
 
-def write_checkpoint(path: Path, root: Path) -> Path:
-    """A GNS 8x1 checkpoint as train.py writes one (untrained: only what is stored matters here)."""
+def write_checkpoint(path: Path, root: Path, **stored) -> Path:
+    """A GNS 8x1 checkpoint as train.py writes one (untrained: only what is stored matters here),
+    with ``stored`` replacing or adding to what it records beside the weights."""
     datamodule = ParticleDataModule(str(root))
     datamodule.prepare_data()
     module = SimulatorModule(model={"_target_": "rgns.models.GNS", "latent": 8, "layers": 1},
@@ -67,7 +72,7 @@ def write_checkpoint(path: Path, root: Path) -> Path:
                              optimizer={"_target_": "torch.optim.Adam", "_partial_": True})
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams), "global_step": 0,
-                "pytorch-lightning_version": L.__version__, "data_root": str(root.resolve())}, path)
+                "pytorch-lightning_version": L.__version__, "data_root": str(root.resolve()), **stored}, path)
     return path
 
 
@@ -255,6 +260,20 @@ def test_an_unreadable_checkpoint_is_named_and_the_others_evaluated(trained, tmp
     assert [m["source"] for m in results["methods"].values()] == [str(trained.resolve())]
     assert any(str(broken.resolve()) in r.getMessage() and "not a readable checkpoint" in r.getMessage()
                for r in caplog.records)
+    (entry,) = results["not_evaluated"]  # also in results.json and the report, not only in evaluate.log
+    assert entry.startswith(f"{broken.resolve()}: not a readable checkpoint")
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "## Not evaluated\n\nAsked for, but left out" in report and f"- {entry}" in report
+
+
+def test_a_run_without_the_checkpoint_asked_for_is_listed_in_results_and_report(trained, tmp_path):
+    best = tmp_path / "run_b" / "checkpoints" / "best-step5.ckpt"
+    best.parent.mkdir(parents=True)
+    shutil.copy(trained, best)
+    results = evaluate(evaluate_config(tmp_path, f"checkpoints_dir={tmp_path}", "checkpoint=best", *QUICK))
+    assert [m["source"] for m in results["methods"].values()] == [str(best.resolve())]
+    assert results["not_evaluated"] == [f"{trained.parent} holds only last.ckpt, no best*.ckpt (checkpoint=best)"]
+    assert f"- {results['not_evaluated'][0]}" in (tmp_path / "out" / "report.md").read_text()
 
 
 def test_inverse_horizons_that_do_not_fit_are_listed_not_silently_dropped(trained, caplog):
@@ -341,3 +360,63 @@ def test_a_checkpoint_on_data_unlike_its_training_data_is_refused(trained, tmp_p
     with pytest.raises(CheckpointError, match=naming(str(trained.resolve()),
                                                      message.format(where=other.resolve() / "test.h5"))):
         evaluate(cfg)
+
+
+class RunsCode:
+    """Unpickled, it makes the folder ``marker``: any code a hostile checkpoint chooses could run."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.mkdir, (str(self.marker),)
+
+
+def test_a_checkpoint_holding_pickled_code_is_refused_without_running_it(trained, tmp_path):
+    marker = tmp_path / "code_ran"
+    torch.save(dict(torch.load(trained, weights_only=True), extra=RunsCode(marker)), trained)
+    with pytest.raises(CheckpointError, match=naming(str(trained), "holds a pickled Python object", "not loaded")):
+        load_simulator(str(trained))
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("name", ["rgns", "gns"])
+def test_the_shipped_checkpoints_load_with_weights_only(name):
+    model, extras = load_simulator(str(ROOT / "pretrained" / "waterdrop40_main" / f"{name}.ckpt"))
+    assert extras["global_step"] > 0 and model.hard_walls
+    assert extras["data_root_relative"] is None  # written before it was recorded: data_root=... as before
+
+
+# ---- 6. a checkpoint's dataset, on another machine ----------------------------------------------------
+
+def test_a_checkpoint_records_its_dataset_as_the_run_gave_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for root, relative in (("datasets/water", "datasets/water"), (str(tmp_path / "datasets" / "water"), None)):
+        module = SimpleNamespace(trainer=SimpleNamespace(world_size=1, datamodule=SimpleNamespace(root=Path(root))))
+        checkpoint = {}
+        SimulatorModule.on_save_checkpoint(module, checkpoint)  # as the trainer calls it, on a stand-in module
+        assert checkpoint["data_root"] == str((tmp_path / "datasets" / "water").resolve())
+        assert checkpoint["data_root_relative"] == relative
+
+
+def test_a_checkpoint_from_another_machine_finds_its_dataset_from_the_current_folder(tmp_path, monkeypatch, capsys):
+    data = write_dataset(tmp_path / "datasets" / "water")
+    gone = tmp_path / "another_machine" / "datasets" / "water"  # where it was trained
+    moved = write_checkpoint(tmp_path / "run" / "checkpoints" / "last.ckpt", data, data_root=str(gone),
+                             data_root_relative="datasets/water")
+    monkeypatch.chdir(tmp_path)
+    results = evaluate(evaluate_config(tmp_path, f"ckpt_path={moved}", *QUICK))
+    assert [d["root"] for d in results["datasets"].values()] == [str(data.resolve())]
+    error = run_cli(inverse_tasks.main, ["--ckpt", str(moved), "--horizons", "1", "100", "--out", str(tmp_path / "o")],
+                    capsys)
+    assert f"test trajectories of {data.resolve()} have 20 frames" in error
+    older = write_checkpoint(tmp_path / "older" / "last.ckpt", data, data_root=str(gone))  # no data_root_relative
+    with pytest.raises(DatasetError, match=re.escape(str(gone))):  # its recorded path, as before
+        evaluate(evaluate_config(tmp_path, f"ckpt_path={older}", *QUICK))
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # neither path exists from here
+    with pytest.raises(CheckpointError, match=naming(str(moved), f"neither at {gone}", "nor at",
+                                                     str(elsewhere.resolve() / "datasets" / "water"), "data_root=")):
+        evaluate(evaluate_config(tmp_path, f"ckpt_path={moved}", *QUICK))

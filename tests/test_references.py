@@ -178,7 +178,7 @@ def stand_in_config(generated, monkeypatch, overrides: list[str]):
     """The evaluate config for ``overrides``, with an untrained GNS standing in for a checkpoint."""
     metadata = json.loads((generated / "metadata.json").read_text())
     stand_in = Method("GNS 8x1", GNS(metadata, latent=8, layers=1).eval(), str(generated), "stand-in.ckpt")
-    monkeypatch.setattr(run_module, "find_checkpoints", lambda *args: [])
+    monkeypatch.setattr(run_module, "find_checkpoints", lambda *args, **_: [])
     monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device, **_: [stand_in])
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
         return compose("evaluate", overrides=overrides)

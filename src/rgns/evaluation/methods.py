@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import copy
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import yaml
 from hydra.utils import get_class, instantiate
 from torch import Tensor
 
-from rgns.models import Simulator, count_parameters
+from rgns.models import RGNS, Simulator, count_parameters
 from rgns.training.module import CheckpointError, load_simulator
 from rgns.training.rollouts import forward_rollout
 
@@ -27,9 +27,10 @@ log = logging.getLogger(__name__)
 class Method:
     label: str
     model: Simulator
-    data_root: str | None
+    data_root: str | None  # the dataset its checkpoint was trained on, absolute (see trained_on)
     source: str  # checkpoint path, or "baseline"
     info: dict = field(default_factory=dict)
+    data_root_relative: str | None = None  # the same, as its run gave it, when relative
 
     @property
     def parameters(self) -> int:
@@ -51,11 +52,12 @@ class Method:
 
 
 def find_checkpoints(ckpt_path: str | None = None, ckpt_paths=(), checkpoints_dir: str | None = None,
-                     checkpoint: str = "last") -> list[Path]:
+                     checkpoint: str = "last", left_out: list[str] | None = None) -> list[Path]:
     """Checkpoint files: ``ckpt_path``, ``ckpt_paths`` and, under ``checkpoints_dir``, every
     ``checkpoints/last.ckpt`` (``checkpoint=last``) or newest ``checkpoints/best*.ckpt``
     (``checkpoint=best``), sorted by path. A run folder without the one asked for is named in a
-    warning and left out; when none has it, the error says what the folders hold."""
+    warning, and in ``left_out`` where given, and left out; when none has it, the error says
+    what the folders hold."""
     if checkpoint not in ("last", "best"):
         raise ValueError(f"checkpoint={checkpoint!r}: 'last' (checkpoints/last.ckpt) or 'best' (the newest "
                          "checkpoints/best*.ckpt), for each run under checkpoints_dir")
@@ -79,12 +81,31 @@ def find_checkpoints(ckpt_path: str | None = None, ckpt_paths=(), checkpoints_di
                                     f"{'; '.join(lacking)}. Pass checkpoint={other} or ckpt_path=<one of those>")
         for item in lacking:
             log.warning("checkpoint=%s: no %s there, so that run is left out: %s", checkpoint, pattern, item)
+            if left_out is not None:
+                left_out.append(f"{item}, no {pattern} (checkpoint={checkpoint})")
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
         raise FileNotFoundError(f"checkpoint(s) not found: {', '.join(missing)}")
     if not paths:
         raise ValueError("no checkpoint given: set ckpt_path=..., ckpt_paths=[...] or checkpoints_dir=...")
     return list(dict.fromkeys(p.resolve() for p in paths))
+
+
+def trained_on(source: str, data_root: str | None, relative: str | None) -> str | None:
+    """The dataset folder the checkpoint ``source`` was trained on: ``data_root``, the absolute
+    path it records, where that exists, else ``relative``, the path its run gave, from the
+    current folder (a checkpoint trained in another checkout, e.g. ``pretrained/``). ``None``
+    where it names none. Checkpoints that record no ``relative`` get ``data_root`` as it is.
+
+    Raises :class:`~rgns.training.module.CheckpointError` naming the checkpoint and both paths
+    when neither exists."""
+    if relative is None or Path(data_root).exists():
+        return data_root
+    if Path(relative).exists():
+        return str(Path(relative).resolve())
+    raise CheckpointError(f"{source}: its dataset is neither at {data_root}, where it was trained, nor at "
+                          f"{Path(relative).resolve()} ({relative}, as its run gave it, from the current folder); "
+                          "pass the dataset folder (evaluate.py data_root=..., or --data-root)")
 
 
 def check_fits(model: Simulator, source: str, metadata: dict, particle_types, where: str) -> None:
@@ -104,7 +125,8 @@ def check_fits(model: Simulator, source: str, metadata: dict, particle_types, wh
 
 
 def describe(model_config: dict) -> str:
-    """``R-GNS 128x10``, ``R-GNS† 128x10`` (forward-only training), ablations appended."""
+    """``R-GNS 128x10``, ``R-GNS† 128x10`` (forward-only training), ablations and a basis other than
+    the model's usual one appended (``GNS 128x10 differences basis``)."""
     cls = get_class(model_config["_target_"])
     name = getattr(cls, "display_name", "") or cls.__name__
     if model_config.get("train_inverse") is False:
@@ -114,6 +136,9 @@ def describe(model_config: dict) -> str:
         label += f" {model_config['encoder'].upper()} enc."
     if model_config.get("edges", "fixed") != "fixed":
         label += f" {model_config['edges']} edges"
+    usual_basis = "differences" if issubclass(cls, RGNS) else "velocity"  # as conf/model/ sets it
+    if model_config.get("basis", usual_basis) != usual_basis:
+        label += f" {model_config['basis']} basis"
     return label
 
 
@@ -147,12 +172,13 @@ def _run_seed(checkpoint: Path) -> int | None:
     return (yaml.safe_load(config.read_text()) or {}).get("seed") if config.is_file() else None
 
 
-def load_checkpoints(paths: list[Path], device: str = "cpu", pretrained=()) -> list[Method]:
+def load_checkpoints(paths: list[Path], device: str = "cpu", pretrained=(),
+                     left_out: list[str] | None = None) -> list[Method]:
     """Methods of checkpoint files; those in ``pretrained`` are labelled ``<model> pretrained``.
 
-    Of several files, one that cannot be read is named in a warning and left out, and the others
-    are loaded; a single file that cannot be read, or none of several, is an error
-    (:class:`~rgns.training.module.CheckpointError`)."""
+    Of several files, one that cannot be read is named in a warning, and in ``left_out`` where
+    given, and left out, and the others are loaded; a single file that cannot be read, or none
+    of several, is an error (:class:`~rgns.training.module.CheckpointError`)."""
     methods, unreadable = [], []
     pretrained = {Path(p).resolve() for p in pretrained}
     for path in paths:
@@ -163,12 +189,14 @@ def load_checkpoints(paths: list[Path], device: str = "cpu", pretrained=()) -> l
                 raise
             log.warning("%s. Left out of this evaluation; the other checkpoints are evaluated", err)
             unreadable.append(str(err))
+            if left_out is not None:
+                left_out.append(str(err))
             continue
         config = dict(extras["hparams"]["model"])
         label = describe(config) + (" pretrained" if Path(path).resolve() in pretrained else "")
         methods.append(Method(label, model, extras["data_root"], str(path), dict(
             model=config, global_step=extras["global_step"], overrides=_run_overrides(path),
-            seed=_run_seed(path), base_label=label)))
+            seed=_run_seed(path), base_label=label), extras["data_root_relative"]))
     if paths and not methods:
         raise CheckpointError("no checkpoint could be read:\n" + "\n".join(unreadable))
     _disambiguate(methods)
@@ -196,8 +224,8 @@ def without_hard_walls(methods: list[Method]) -> list[Method]:
         if getattr(method.model, "hard_walls", False):
             model = copy.copy(method.model)  # shares the parameters; only the flag differs
             model.hard_walls = False
-            twins.append(Method(f"{method.label}, no hard walls", model, method.data_root, method.source,
-                                dict(method.info, hard_walls=False)))
+            twins.append(replace(method, label=f"{method.label}, no hard walls", model=model,
+                                 info=dict(method.info, hard_walls=False)))
     return twins
 
 

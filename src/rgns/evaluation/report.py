@@ -277,6 +277,13 @@ def goal_tables(results: dict) -> list[str]:
     return out
 
 
+def not_evaluated(results: dict) -> list[str]:
+    """A section naming the runs and checkpoints asked for but left out, and why, if any."""
+    left_out = results.get("not_evaluated") or []
+    return ["## Not evaluated", "", "Asked for, but left out of this evaluation (`not_evaluated` in results.json):",
+            "", *(f"- {item}" for item in left_out), ""] if left_out else []
+
+
 def render(results: dict, charts: list[str]) -> str:
     methods = results["methods"]
     sources = [f"- {label}: `{info['source']}`" + (f" (step {info['global_step']})" if info.get("global_step") else "") for label, info in methods.items()]
@@ -284,7 +291,7 @@ def render(results: dict, charts: list[str]) -> str:
     lines = ["# rgns evaluation", "",
              f"Reproduce with: `{results['command']}`", "",
              f"Run {results['date']} on {environment['device']} ({environment['threads']} thread(s)), "
-             f"torch {environment['torch']}. Methods:", "", *sources, "",
+             f"torch {environment['torch']}. Methods:", "", *sources, "", *not_evaluated(results),
              *forward_tables(results), *seed_tables(results), *efficiency_tables(results), *inverse_tables(results),
              *optimisation_tables(results), *goal_tables(results), "", "## Charts", ""]
     lines += [f"![{_title(c)}]({c})" for c in charts]

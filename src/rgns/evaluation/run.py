@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from rgns.data.contract import DatasetError
 from rgns.evaluation import plots, report
 from rgns.evaluation.methods import (build_baselines, check_fits, find_checkpoints, load_checkpoints, seed_groups,
-                                     without_hard_walls)
+                                     trained_on, without_hard_walls)
 from rgns.evaluation.tasks import Dataset
 
 log = logging.getLogger(__name__)
@@ -85,9 +85,11 @@ def evaluate(cfg: DictConfig) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     pretrained = find_checkpoints(ckpt_paths=cfg.pretrained) if cfg.get("pretrained") else []
     given = cfg.ckpt_path or cfg.ckpt_paths or cfg.checkpoints_dir or not pretrained
-    checkpoints = find_checkpoints(cfg.ckpt_path, cfg.ckpt_paths, cfg.checkpoints_dir, cfg.checkpoint) if given else []
+    left_out = []  # runs and checkpoints asked for but not evaluated, and why: results.json and report.md too
+    checkpoints = find_checkpoints(cfg.ckpt_path, cfg.ckpt_paths, cfg.checkpoints_dir, cfg.checkpoint,
+                                   left_out=left_out) if given else []
     methods = load_checkpoints(checkpoints + [p for p in pretrained if p not in checkpoints], cfg.device,
-                               pretrained=pretrained)
+                               pretrained=pretrained, left_out=left_out)
     if cfg.get("hard_walls") is not None:  # roll every checkpoint out with (or without) hard walls
         for method in methods:
             method.model.hard_walls = bool(cfg.hard_walls)
@@ -97,7 +99,7 @@ def evaluate(cfg: DictConfig) -> dict:
 
     by_root: dict[str, list] = {}
     for method in methods:
-        root = cfg.data_root or method.data_root
+        root = cfg.data_root or trained_on(method.source, method.data_root, method.data_root_relative)
         if root is None:
             raise ValueError(f"{method.source}: the checkpoint does not name its dataset; set data_root=...")
         by_root.setdefault(str(Path(root).resolve()), []).append(method)
@@ -117,7 +119,8 @@ def evaluate(cfg: DictConfig) -> dict:
                    config=OmegaConf.to_container(cfg, resolve=True),
                    environment=dict(torch=torch.__version__, python=platform.python_version(), device=cfg.device,
                                     threads=torch.get_num_threads()),
-                   methods={m.label: dict(source=m.source, **m.info) for m in methods}, datasets={})
+                   methods={m.label: dict(source=m.source, **m.info) for m in methods}, not_evaluated=left_out,
+                   datasets={})
     examples = {}
     for root, trained in by_root.items():
         dataset, history = datasets[root], trained[0].model.history

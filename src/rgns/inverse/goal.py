@@ -589,7 +589,7 @@ def _label(model, extras: dict, path: str) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     from rgns.data.contract import check_dataset, open_split
-    from rgns.evaluation.methods import check_fits
+    from rgns.evaluation.methods import check_fits, trained_on
     from rgns.training.module import load_simulator
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -623,7 +623,7 @@ def main(argv: list[str] | None = None) -> dict:
         model, extras = load_simulator(path)
         label = _label(model, extras, path)
         models[label if label not in models else f"{label} {Path(path).name}"] = model  # two of one run stay apart
-        root = root or extras["data_root"]
+        root = root or trained_on(path, extras["data_root"], extras["data_root_relative"])
     if root is None:
         raise SystemExit("the checkpoint does not name its dataset: pass --data-root")
     contents = check_dataset(root, splits=("train",))

@@ -361,7 +361,7 @@ def main(argv: list[str] | None = None) -> dict:
     """``python -m rgns.inverse.tasks --ckpt A.ckpt [--ckpt B.ckpt] --out DIR [--horizons 1 5 10 20 40]``"""
     import argparse
 
-    from rgns.evaluation.methods import check_fits
+    from rgns.evaluation.methods import check_fits, trained_on
     from rgns.training.module import load_simulator
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -410,7 +410,7 @@ def main(argv: list[str] | None = None) -> dict:
         if label in models:
             parser.error(f"--ckpt {path}: a second checkpoint labelled {label!r}; give each one a --label")
         models[label] = model
-        root = root or extras["data_root"]
+        root = root or trained_on(path, extras["data_root"], extras["data_root_relative"])
     if root is None:
         parser.error("the checkpoint does not name its dataset: pass --data-root")
     history = next(iter(models.values())).history  # t0 = k, as compare_inverse

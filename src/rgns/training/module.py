@@ -3,6 +3,7 @@ bidirectional models, the inverse loss (oldest velocity) on the same batch and g
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import lightning as L
@@ -247,6 +248,9 @@ class SimulatorModule(L.LightningModule):
         checkpoint["world_size"] = self.trainer.world_size
         root = getattr(getattr(self.trainer, "datamodule", None), "root", None)
         checkpoint["data_root"] = None if root is None else str(Path(root).resolve())
+        # also as the run gave it, when relative: the same dataset in a checkout on another machine
+        relative = root is not None and not Path(root).is_absolute()
+        checkpoint["data_root_relative"] = Path(root).as_posix() if relative else None
 
 
 class CheckpointError(ValueError):
@@ -257,26 +261,47 @@ class CheckpointError(ValueError):
 def load_simulator(path: str, map_location: str = "cpu"):
     """The trained simulator (a plain ``nn.Module``, eval mode) and its checkpoint's extras.
 
+    The file is read once, with ``torch.load(weights_only=True)``: tensors and plain containers,
+    all that train.py writes, and never pickled code; the module is rebuilt from what was read.
     Raises :class:`CheckpointError` naming the file when it is not a readable checkpoint
-    (truncated, not a PyTorch file) or not one of a :class:`SimulatorModule`."""
+    (truncated, not a PyTorch file, holding pickled objects) or not one of a :class:`SimulatorModule`."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path}: checkpoint not found")
-    try:
-        extras = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # whatever torch's readers meet: OSError, EOFError, KeyError, UnpicklingError, ...
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err}); the file may be "
-                              "truncated (an interrupted write or copy) or not a checkpoint at all") from None
+    extras = _read_plain(path)
     hparams = extras.get("hyper_parameters") if isinstance(extras, dict) else None
     if not isinstance(hparams, dict) or not {"model", "metadata"} <= set(hparams) or "state_dict" not in extras:
         raise CheckpointError(f"{path}: a PyTorch file, but not an rgns training checkpoint (it needs a state_dict "
                               "and hyper_parameters with 'model' and 'metadata', as train.py writes)")
     try:
-        module = SimulatorModule.load_from_checkpoint(path, map_location=map_location)
+        module = SimulatorModule(**hparams)
+        module.load_state_dict(extras["state_dict"])
     except Exception as err:
         raise CheckpointError(f"{path}: an rgns checkpoint this code cannot rebuild its model from "
                               f"({type(err).__name__}: {err})") from err
-    return module.model.eval(), {
+    return module.model.to(map_location).eval(), {
         "data_root": extras.get("data_root"),
+        "data_root_relative": extras.get("data_root_relative"),
         "global_step": extras.get("global_step"),
         "hparams": dict(module.hparams),
     }
+
+
+def _read_plain(path: str):
+    """What the PyTorch file ``path`` holds, read with ``weights_only=True`` onto the CPU.
+
+    Raises :class:`CheckpointError` naming the file, and the pickled object where one stopped
+    the reader, when it cannot be read so."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # whatever torch's readers meet: OSError, EOFError, KeyError, UnpicklingError, ...
+        message = str(err)
+        unsafe = re.search(r"(?:GLOBAL|Unsupported class) ([\w.]+)", message)  # torch's words for a pickled object
+        if unsafe:
+            raise CheckpointError(f"{path}: holds a pickled Python object ({unsafe[1]}), not only the tensors and "
+                                  "plain containers train.py writes; not loaded, as unpickling it could run any code "
+                                  "(rgns reads checkpoints with torch.load(weights_only=True))") from None
+        if "WeightsUnpickler error:" in message:  # the reason, without torch's advice to load with weights_only=False
+            message = message.split("WeightsUnpickler error:")[1].split("Check the documentation")[0]
+        reason = f"{type(err).__name__}: {' '.join(message.split())}"
+        raise CheckpointError(f"{path}: not a readable checkpoint ({reason}); the file may be truncated (an interrupted "
+                              "write or copy) or not a checkpoint at all") from None
