@@ -135,6 +135,26 @@ def test_one_step_unroll_with_clean_input_is_the_position_error(tiny_dataset):
     torch.testing.assert_close(terms["forward_mse"].detach(), torch.stack(errors).mean(), rtol=1e-4, atol=0)
 
 
+@pytest.mark.parametrize("scale", [0.0, 1.0])
+def test_unrolled_loss_starts_from_positions_with_the_position_noise_asked_for(tiny_dataset, scale):
+    """position_noise scales the start frame's share of the random-walk noise in the multi-step
+    loss as in the one-step windows: 0 starts from the clean frame, 1 from GNS's noisy one."""
+    module = module_with(unroll={"steps": [0], "lengths": [2]})
+    module.hparams.noise_std, module.hparams.position_noise = 1e-2, scale
+    batch = windows_batch(tiny_dataset, lead=0, horizon=2)
+    starts, step = [], module.model.step
+
+    def recorded(state, kinematic_position=None):
+        starts.append(state.position.detach().clone())
+        return step(state, kinematic_position)
+
+    module.model.step = recorded
+    module._losses(batch)
+    moving = batch.particle_type == WATER
+    offset = (starts[0] - batch.frames[:, 5])[moving].abs().max()
+    assert (offset == 0) if scale == 0 else (offset > 1e-3)
+
+
 class Falling(Simulator):
     """A stand-in network that pushes particles into the floor: forward it predicts a fall,
     backward an earlier frame below the floor."""

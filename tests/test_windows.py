@@ -57,6 +57,40 @@ def test_noisy_inputs_clean_velocity_targets(split):
     torch.testing.assert_close(sample.pos[kinematic], position[t][kinematic], rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("fraction", [0.25, 1.0])
+def test_position_correction_takes_back_that_fraction_of_the_position_noise(split, fraction):
+    """The forward target lands p~^t + target on the clean p^{t+1} plus (1 - fraction) of p~^t's noise;
+    the inputs and the inverse target are those of plain GNS noise (same draw)."""
+    position = torch.from_numpy(split[1].position)
+    t, i = K + 2, (20 - K - 1) + 2  # trajectory 1, t = K + 2
+    torch.manual_seed(0)
+    plain = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2)[i]
+    torch.manual_seed(0)
+    sample = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2, position_correction=fraction)[i]
+    torch.testing.assert_close(sample.forward_input, plain.forward_input, rtol=0, atol=0)
+    torch.testing.assert_close(sample.inverse_target, plain.inverse_target, rtol=0, atol=0)
+    noise = sample.pos - position[t]
+    assert noise.abs().max() > 1e-3  # the moving particles' positions are noisy
+    landed = sample.pos + sample.forward_target
+    torch.testing.assert_close(landed, position[t + 1] + (1 - fraction) * noise, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.5])
+def test_position_noise_scales_only_the_positions_share_of_the_noise(split, scale):
+    """The input velocities and the targets are plain GNS noise's (same draw); p~^t is the clean
+    p^t plus ``scale`` times GNS's position noise (0: clean positions)."""
+    position = torch.from_numpy(split[1].position)
+    t, i = K + 2, (20 - K - 1) + 2  # trajectory 1, t = K + 2
+    torch.manual_seed(0)
+    plain = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2)[i]
+    torch.manual_seed(0)
+    sample = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2, position_noise=scale)[i]
+    for key in ("forward_input", "forward_target", "inverse_input", "inverse_target"):
+        torch.testing.assert_close(sample[key], plain[key], rtol=0, atol=0)
+    assert (plain.pos - position[t]).abs().max() > 1e-3  # GNS's positions are noisy
+    torch.testing.assert_close(sample.pos, position[t] + scale * (plain.pos - position[t]), rtol=0, atol=1e-6)
+
+
 def test_trajectory_cache_keeps_what_fits_and_changes_nothing(split):
     size = split[0].position.nbytes + split[0].particle_type.nbytes
     kept = WindowDataset(split, radius=0.08, history=K, cache_mb=1.5 * size / 2**20)  # room for one of three

@@ -52,6 +52,8 @@ class ParticleDataModule(L.LightningDataModule):
         horizon: int = 1,
         make_root: str | None = None,
         cache_mb: float = 1024.0,
+        position_correction: float = 0.0,
+        position_noise: float = 1.0,
     ):
         super().__init__()
         if isinstance(history, bool) or not isinstance(history, int) or history < 1:
@@ -67,6 +69,7 @@ class ParticleDataModule(L.LightningDataModule):
         self.batch_size, self.num_workers = batch_size, num_workers
         self.lead, self.horizon = lead, horizon
         self.cache_mb = cache_mb
+        self.position_correction, self.position_noise = position_correction, position_noise
         self._contents: Contents | None = None
 
     def prepare_data(self) -> None:
@@ -118,7 +121,8 @@ class ParticleDataModule(L.LightningDataModule):
         self.check()
         if stage in (None, "fit"):
             self.train_set = WindowDataset(self.split("train"), self.radius, self.history, self.noise_std,
-                                           self.lead, self.horizon, self.cache_mb)
+                                           self.lead, self.horizon, self.cache_mb, self.position_correction,
+                                           self.position_noise)
             self.valid_set = WindowDataset(self.split("valid"), self.radius, self.history, 0.0)
             self.valid_trajectories = TrajectoryDataset(self.split("valid"))
 

@@ -60,11 +60,13 @@ class WindowDataset(Dataset):
     """
 
     def __init__(self, split: Split, radius: float, history: int = 5, noise_std: float = 0.0,
-                 lead: int = 0, horizon: int = 1, cache_mb: float = 1024.0):
+                 lead: int = 0, horizon: int = 1, cache_mb: float = 1024.0, position_correction: float = 0.0,
+                 position_noise: float = 1.0):
         if lead < 0 or horizon < 1:
             raise ValueError(f"lead={lead} must be >= 0 and horizon={horizon} >= 1")
         self.split, self.radius, self.history, self.noise_std = split, radius, history, noise_std
         self.lead, self.horizon = lead, horizon
+        self.position_correction, self.position_noise = position_correction, position_noise
         self.cache_bytes = int(cache_mb * 2**20)
         self._kept: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._kept_bytes = 0
@@ -100,8 +102,10 @@ class WindowDataset(Dataset):
         else:
             noisy = velocity
         noisy_position = frames[0] + noisy.cumsum(0)  # [k+1, N, D]: p~^{t-k+1} .. p~^{t+1}
-        position_t = noisy_position[-2]  # p~^t
+        position_t = frames[-2] + self.position_noise * (noisy_position[-2] - frames[-2])  # p~^t
         forward_target = velocity[-1]  # the clean v^{t+1}
+        if self.position_correction:  # and back towards the clean p^{t+1} by this fraction of p~^t's noise
+            forward_target = forward_target - self.position_correction * (position_t - frames[-2])
         inverse_target = velocity[0]  # the clean v^{t-k+1}
         extra = {}
         if self.lead > 0 or self.horizon > 1:

@@ -60,6 +60,8 @@ class SimulatorModule(L.LightningModule):
         pushforward: dict | None = None,
         unroll: dict | None = None,
         lr_reference_batch: int | None = None,
+        position_correction: float = 0.0,
+        position_noise: float = 1.0,
     ):
         super().__init__()
         # Hydra hands over DictConfigs: store plain values, so checkpoints load with weights_only
@@ -110,8 +112,9 @@ class SimulatorModule(L.LightningModule):
         velocity = window[1:] - window[:-1]  # [k, N, D]
         if self.hparams.noise_std > 0:
             velocity = velocity + random_walk_noise(tuple(velocity.shape), self.hparams.noise_std, moving.cpu()).to(velocity)
-        noisy_last = window[0] + velocity.sum(0)  # the start frame, noisy
-        offset = noisy_last - window[-1]  # the targets move with the start frame's noise (as in GNS)
+        noisy_last = window[-1] + self.hparams.position_noise * (window[0] + velocity.sum(0) - window[-1])  # the start frame, noisy
+        # the targets move with the start frame's noise (as in GNS), less the corrected fraction
+        offset = (1 - self.hparams.position_correction) * (noisy_last - window[-1])
         state = State(noisy_last, velocity.transpose(0, 1).contiguous(), batch.particle_type, batch.batch)
         with torch.no_grad():
             for j in range(pushed):
