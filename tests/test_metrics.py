@@ -2,6 +2,7 @@ import math
 
 import pytest
 import torch
+from conftest import make_metadata
 
 from rgns.evaluation.metrics import chamfer, divergence_step, mmd, mse_per_step, optimal_transport, rollout_mse
 from rgns.training.losses import LossDesign
@@ -77,3 +78,32 @@ def test_loss_designs_weigh_their_terms():
     assert float(dl2["cosine"]) > 0 and float(dl2["mmd"]) > 0
     perfect = LossDesign("DL2", cosine=0.1, mmd=0.1)(target, target, batch)
     assert float(perfect["loss"]) == pytest.approx(0.0, abs=1e-6)
+
+
+def free_fall(frames: int = 40, particles: int = 12):
+    """Particles in free flight in the middle of the box (no wall reached): ``[T, N, 2]`` and the
+    metadata of a scene with gravity."""
+    metadata = dict(make_metadata(), gravity=[0.0, -9.81])
+    g = torch.tensor([0.0, -9.81]) * metadata["dt"] ** 2  # per frame squared
+    start = 0.4 + 0.2 * torch.rand(particles, 2, generator=torch.Generator().manual_seed(0))
+    velocity = 1e-3 * torch.randn(particles, 2, generator=torch.Generator().manual_seed(1))
+    t = torch.arange(frames, dtype=torch.float64)[:, None, None]
+    position = start.double() + velocity.double() * t + 0.5 * g.double() * t**2
+    return position.float(), torch.full((particles,), 5), metadata, g
+
+
+def test_one_step_diagnostic_finds_gravity_missing_and_present():
+    """Ballistic motion predicts a free fall's acceleration exactly; constant velocity misses all
+    of it (an error of |g|, relative error 1)."""
+    from rgns.evaluation.baselines import Ballistic, ConstantVelocity
+    from rgns.evaluation.onestep import by_span, one_step_accelerations
+
+    position, particle_type, metadata, g = free_fall()
+    for model, expected in ((Ballistic(metadata), 0.0), (ConstantVelocity(metadata), 1.0)):
+        accelerations = one_step_accelerations(model, position, particle_type)
+        assert accelerations["frame"].tolist() == list(range(5, 39))
+        rows = by_span([accelerations], spans=(5, 20))
+        assert [r["frames"] for r in rows] == ["5-20", "20-end"]
+        for row in rows:
+            assert row["true_rms"] == pytest.approx(float(g.norm()), rel=1e-2)
+            assert row["relative_error"] == pytest.approx(expected, abs=1e-2)
