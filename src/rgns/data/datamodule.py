@@ -38,6 +38,8 @@ class ParticleDataModule(L.LightningDataModule):
             :class:`~rgns.data.windows.WindowDataset`).
         cache_mb: training trajectories kept in memory once read, per process (MiB; see
             :class:`~rgns.data.windows.WindowDataset`).
+        position_correction, position_noise: variants of the training noise (see
+            :class:`~rgns.data.windows.WindowDataset`; 0 and 1: GNS's).
     """
 
     def __init__(

@@ -53,6 +53,10 @@ class WindowDataset(Dataset):
         noise_std: GNS random-walk noise std (0 for validation).
         lead: frames before ``p^{t-k}`` a pushforward may start from.
         horizon: frames after ``p^t`` an unrolled loss may reach (1: the next frame only).
+        position_correction: the fraction of ``p~^t``'s noise the forward target takes back (the
+            next position lands that much nearer the clean ``p^{t+1}``; 0: GNS's target).
+        position_noise: the input position's share of the noise, scaled (1: GNS's ``p~^t``; 0: the
+            clean ``p^t`` with the noisy velocities).
         cache_mb: trajectories kept in memory once read, up to this many MiB (per process: each
             DataLoader worker has its own); past it, only the last one read. Shuffled windows
             jump between trajectories, and reading one from the file costs more than building
@@ -102,7 +106,9 @@ class WindowDataset(Dataset):
         else:
             noisy = velocity
         noisy_position = frames[0] + noisy.cumsum(0)  # [k+1, N, D]: p~^{t-k+1} .. p~^{t+1}
-        position_t = frames[-2] + self.position_noise * (noisy_position[-2] - frames[-2])  # p~^t
+        position_t = noisy_position[-2]  # p~^t
+        if self.position_noise != 1:  # its share of the noise scaled (0: the clean p^t)
+            position_t = frames[-2] + self.position_noise * (position_t - frames[-2])
         forward_target = velocity[-1]  # the clean v^{t+1}
         if self.position_correction:  # and back towards the clean p^{t+1} by this fraction of p~^t's noise
             forward_target = forward_target - self.position_correction * (position_t - frames[-2])

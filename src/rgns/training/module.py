@@ -42,6 +42,9 @@ class SimulatorModule(L.LightningModule):
         lr_reference_batch: scale the optimiser's learning rate linearly with the graphs per
             optimisation step (``data.batch_size`` x DDP ranks) over this reference batch (e.g.
             2, the batch the lr was tuned at); ``None`` keeps the lr as given.
+        position_correction, position_noise: the noise variants of
+            :class:`~rgns.data.windows.WindowDataset`, applied to the start frame of the
+            pushforward and unrolled losses as the datamodule applies them to one-step windows.
     """
 
     def __init__(
@@ -112,7 +115,9 @@ class SimulatorModule(L.LightningModule):
         velocity = window[1:] - window[:-1]  # [k, N, D]
         if self.hparams.noise_std > 0:
             velocity = velocity + random_walk_noise(tuple(velocity.shape), self.hparams.noise_std, moving.cpu()).to(velocity)
-        noisy_last = window[-1] + self.hparams.position_noise * (window[0] + velocity.sum(0) - window[-1])  # the start frame, noisy
+        noisy_last = window[0] + velocity.sum(0)  # the start frame, noisy
+        if self.hparams.position_noise != 1:  # its share of the noise scaled, as in the one-step windows
+            noisy_last = window[-1] + self.hparams.position_noise * (noisy_last - window[-1])
         # the targets move with the start frame's noise (as in GNS), less the corrected fraction
         offset = (1 - self.hparams.position_correction) * (noisy_last - window[-1])
         state = State(noisy_last, velocity.transpose(0, 1).contiguous(), batch.particle_type, batch.batch)
