@@ -57,16 +57,22 @@ def test_noisy_inputs_clean_velocity_targets(split):
     torch.testing.assert_close(sample.pos[kinematic], position[t][kinematic], rtol=0, atol=0)
 
 
+def gns_and_variant(split, **variant):
+    """Trajectory 1's clean positions, t = K + 2, and its window at t with GNS's noise and with a
+    noise ``variant`` of the same draw."""
+    i = (20 - K - 1) + 2  # trajectory 1, t = K + 2
+    torch.manual_seed(0)
+    plain = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2)[i]
+    torch.manual_seed(0)
+    sample = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2, **variant)[i]
+    return torch.from_numpy(split[1].position), K + 2, plain, sample
+
+
 @pytest.mark.parametrize("fraction", [0.25, 1.0])
 def test_position_correction_takes_back_that_fraction_of_the_position_noise(split, fraction):
     """The forward target lands p~^t + target on the clean p^{t+1} plus (1 - fraction) of p~^t's noise;
     the inputs and the inverse target are those of plain GNS noise (same draw)."""
-    position = torch.from_numpy(split[1].position)
-    t, i = K + 2, (20 - K - 1) + 2  # trajectory 1, t = K + 2
-    torch.manual_seed(0)
-    plain = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2)[i]
-    torch.manual_seed(0)
-    sample = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2, position_correction=fraction)[i]
+    position, t, plain, sample = gns_and_variant(split, position_correction=fraction)
     torch.testing.assert_close(sample.forward_input, plain.forward_input, rtol=0, atol=0)
     torch.testing.assert_close(sample.inverse_target, plain.inverse_target, rtol=0, atol=0)
     noise = sample.pos - position[t]
@@ -79,12 +85,7 @@ def test_position_correction_takes_back_that_fraction_of_the_position_noise(spli
 def test_position_noise_scales_only_the_positions_share_of_the_noise(split, scale):
     """The input velocities and the targets are plain GNS noise's (same draw); p~^t is the clean
     p^t plus ``scale`` times GNS's position noise (0: clean positions)."""
-    position = torch.from_numpy(split[1].position)
-    t, i = K + 2, (20 - K - 1) + 2  # trajectory 1, t = K + 2
-    torch.manual_seed(0)
-    plain = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2)[i]
-    torch.manual_seed(0)
-    sample = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2, position_noise=scale)[i]
+    position, t, plain, sample = gns_and_variant(split, position_noise=scale)
     for key in ("forward_input", "forward_target", "inverse_input", "inverse_target"):
         torch.testing.assert_close(sample[key], plain[key], rtol=0, atol=0)
     assert (plain.pos - position[t]).abs().max() > 1e-3  # GNS's positions are noisy
