@@ -35,6 +35,12 @@ def random_walk_noise(shape: tuple[int, int, int], noise_std: float, moving: tor
     return steps.cumsum(0) * moving[None, :, None]
 
 
+def scale_position_noise(noisy: torch.Tensor, clean: torch.Tensor, scale: float) -> torch.Tensor:
+    """A noisy position with its noise scaled: ``clean + scale (noisy - clean)`` (``noisy`` itself
+    at 1, so GNS's path is untouched).  ``[N, D]``"""
+    return noisy if scale == 1 else clean + scale * (noisy - clean)
+
+
 class WindowDataset(Dataset):
     """Every (trajectory, t) window of a split, as a PyG ``Data`` with the fields
 
@@ -106,9 +112,7 @@ class WindowDataset(Dataset):
         else:
             noisy = velocity
         noisy_position = frames[0] + noisy.cumsum(0)  # [k+1, N, D]: p~^{t-k+1} .. p~^{t+1}
-        position_t = noisy_position[-2]  # p~^t
-        if self.position_noise != 1:  # its share of the noise scaled (0: the clean p^t)
-            position_t = frames[-2] + self.position_noise * (position_t - frames[-2])
+        position_t = scale_position_noise(noisy_position[-2], frames[-2], self.position_noise)  # p~^t
         forward_target = velocity[-1]  # the clean v^{t+1}
         if self.position_correction:  # and back towards the clean p^{t+1} by this fraction of p~^t's noise
             forward_target = forward_target - self.position_correction * (position_t - frames[-2])

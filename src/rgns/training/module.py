@@ -13,7 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from rgns.data.contract import KINEMATIC
-from rgns.data.windows import random_walk_noise
+from rgns.data.windows import random_walk_noise, scale_position_noise
 from rgns.models import State
 from rgns.training.recipes import Pushforward, Unroll
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
@@ -115,9 +115,8 @@ class SimulatorModule(L.LightningModule):
         velocity = window[1:] - window[:-1]  # [k, N, D]
         if self.hparams.noise_std > 0:
             velocity = velocity + random_walk_noise(tuple(velocity.shape), self.hparams.noise_std, moving.cpu()).to(velocity)
-        noisy_last = window[0] + velocity.sum(0)  # the start frame, noisy
-        if self.hparams.position_noise != 1:  # its share of the noise scaled, as in the one-step windows
-            noisy_last = window[-1] + self.hparams.position_noise * (noisy_last - window[-1])
+        # the start frame, noisy (its share of the noise scaled as in the one-step windows)
+        noisy_last = scale_position_noise(window[0] + velocity.sum(0), window[-1], self.hparams.position_noise)
         # the targets move with the start frame's noise (as in GNS), less the corrected fraction
         offset = (1 - self.hparams.position_correction) * (noisy_last - window[-1])
         state = State(noisy_last, velocity.transpose(0, 1).contiguous(), batch.particle_type, batch.batch)
