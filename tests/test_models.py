@@ -346,3 +346,47 @@ def test_a_collapsed_rollout_stops_and_repeats_its_last_frame(caplog):
     torch.testing.assert_close(gns.rollout(state, 6), unguarded.rollout(state, 6), rtol=0, atol=0)
     assert model.densest_cell(positions[-1]) == int((state.particle_type != KINEMATIC).sum())  # the clump
     assert GNS.collapse_factor == 30.0  # the default, far past a fluid's compression or a pile at a wall
+
+
+# ---- compiled networks (module.compile) ------------------------------------------------------
+
+@pytest.mark.parametrize("cls", [GNS, RGNS])
+def test_compiled_network_computes_what_the_eager_one_does(cls):
+    """compile_network changes how the network runs, not what it computes: the same velocities
+    and gradients on two batches of different sizes (dynamic shapes), and a copy runs eager."""
+    import copy
+
+    torch.manual_seed(0)
+    eager = cls(metadata(), history=K, latent=16, layers=1, **({"memory_saving": False} if cls is RGNS else {}))
+    perturb(eager)
+    compiled = copy.deepcopy(eager)
+    compiled.compile_network(dynamic=True)
+    assert compiled.compiled and not eager.compiled
+    for graphs, seed in ((2, 0), (3, 1)):
+        batch = training_batch(graphs=graphs, seed=seed)
+        args = (batch.pos, batch.forward_input, batch.particle_type, batch.edge_index, batch.batch)
+        outputs = {}
+        for name, model in (("eager", eager), ("compiled", compiled)):
+            model.zero_grad()
+            if model.bidirectional:
+                velocities = model.both_velocities(batch.pos, batch.forward_input, batch.inverse_input,
+                                                   batch.particle_type, batch.edge_index, batch.batch)
+            else:
+                velocities = (model.next_velocity(*args),)
+            sum(v.pow(2).sum() for v in velocities).backward()
+            outputs[name] = (velocities, [p.grad.clone() for p in model.parameters()])
+        for got, want in zip(outputs["compiled"][0], outputs["eager"][0]):
+            torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-7)
+        for got, want in zip(outputs["compiled"][1], outputs["eager"][1]):
+            torch.testing.assert_close(got, want, rtol=1e-3, atol=1e-7)
+    assert list(compiled.state_dict()) == list(eager.state_dict())  # checkpoints are alike
+    copied = copy.deepcopy(compiled)  # e.g. the EMA's averaged model: eager, the same function
+    assert not copied.compiled
+    torch.testing.assert_close(copied.next_velocity(*args), eager.next_velocity(*args))
+
+
+def test_rgns_refuses_to_compile_its_memory_saving_backward():
+    model = RGNS(metadata(), history=K, latent=16, layers=1, memory_saving=True)
+    with pytest.raises(ValueError, match="memory_saving=false"):
+        model.compile_network(dynamic=True)
+    assert not model.compiled

@@ -192,3 +192,20 @@ def test_validation_rollouts_score_the_averaged_weights(dataset, tmp_path):
     with torch.no_grad():
         mse = (forward_rollout(model, position, particle_type, k, n) - position[k + 1 : k + 1 + n]).pow(2).mean()
     assert logged == pytest.approx(mse.item(), rel=1e-4)
+
+
+def test_compiled_training_saves_an_eager_checkpoint(dataset, tmp_path):
+    """module.compile=true: training steps run compiled (the EMA's copy and validation eager),
+    and the checkpoint holds a model that loads and runs eager."""
+    from rgns.training.module import load_simulator
+
+    run = tmp_path / "run"
+    ema = ("+callbacks.ema={_target_: lightning.pytorch.callbacks.WeightAveraging, "
+           "multi_avg_fn: {_target_: torch.optim.swa_utils.get_ema_multi_avg_fn, decay: 0.5}}")
+    train(tmp_path, "data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.max_steps=6",
+          "trainer.val_check_interval=3", "module.compile=true", "model.memory_saving=false", ema,
+          f"hydra.run.dir={run}", *TINY)
+    model, info = load_simulator(str(run / "checkpoints" / "last.ckpt"))
+    assert info["global_step"] == 6 and info["hparams"]["compile"] is True
+    assert not model.compiled
+    assert "val/rollout_mse" in scalar_tags(run)

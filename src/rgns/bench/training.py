@@ -16,7 +16,10 @@ Trainer at least 0.8 of the bare step rate.
 job's preset (``experiment=main``, with ``scripts/main.sh``'s overrides) on its dataset
 (``datasets/waterdrop40_main``, generated if missing): the bare training step of each model on real
 windows, one thread, median of repeats, beside the step as it was before (R-GNS's memory-saving
-backward, a per-parameter Adam), timed in alternation; the ratio is the speed-up.
+backward, a per-parameter Adam), timed in alternation; the ratio is the speed-up. With
+``--compile`` the step beside it is the same model with ``module.compile=true``
+(``torch.compile(dynamic=True)`` of the network), and the time its first steps took to compile
+is printed too.
 """
 from __future__ import annotations
 
@@ -72,21 +75,26 @@ MAIN_OVERRIDES = {"rgns": ["model.memory_saving=false"], "gns": ["model.layers=4
 BEFORE = {"rgns": ["model.memory_saving=true"]}
 
 
-def main_preset(models: list[str], steps: int, overrides: list[str]) -> dict:
+def main_preset(models: list[str], steps: int, overrides: list[str], compiled: bool = False) -> dict:
     """Bare training steps per second of the main preset's models on its dataset, as
-    ``scripts/main.sh`` trains them (its overrides, the configured fused Adam) and as they were
-    before (R-GNS's memory-saving backward, a per-parameter Adam), the two timed in alternation on
-    the same batches so that the ratio is measured side by side."""
+    ``scripts/main.sh`` trains them (its overrides, the configured fused Adam) and, beside it,
+    as they were before (R-GNS's memory-saving backward, a per-parameter Adam) or, with
+    ``compiled``, with ``module.compile=true``; the two timed in alternation on the same batches
+    so that the ratio is measured side by side. The first 5 steps of each are warm-up (for the
+    compiled one: its compilation, timed as ``compile_s``)."""
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
     from rgns import config_dir
 
     torch.set_num_threads(1)
+    warmup = 5
     result = {}
     for name in models:
+        other = ["module.compile=true"] if compiled else [*BEFORE.get(name, []), "module.optimizer.fused=false"]
+        label = "compiled" if compiled else "before"
         variants = {}
-        for variant, extra in (("main", []), ("before", [*BEFORE.get(name, []), "module.optimizer.fused=false"])):
+        for variant, extra in (("main", []), (label, other)):
             with initialize_config_dir(str(config_dir()), version_base="1.3"):
                 cfg = compose("train", overrides=["experiment=main", f"model={name}", "data.num_workers=0",
                                                   *MAIN_OVERRIDES.get(name, []), *extra, *overrides])
@@ -95,33 +103,46 @@ def main_preset(models: list[str], steps: int, overrides: list[str]) -> dict:
                 datamodule.prepare_data()
                 datamodule.setup("fit")
                 loader = iter(datamodule.train_dataloader())
-                batches = [next(loader) for _ in range(steps + 5)]
+                batches = [next(loader) for _ in range(steps + warmup)]
             L.seed_everything(0)
             module = instantiate(cfg.module, model=cfg.model, loss=cfg.loss, metadata=datamodule.metadata,
                                  _recursive_=False)
+            module.setup("fit")  # where module.compile takes effect
             variants[variant] = (module, instantiate(cfg.module.optimizer)(module.parameters()), [])
+        warm = dict.fromkeys(variants, 0.0)
         for i, batch in enumerate(batches):  # alternate: both variants see the same load
-            for module, optimizer, times in variants.values():
+            for variant, (module, optimizer, times) in variants.items():
                 start = time.perf_counter()
                 optimizer.zero_grad(set_to_none=True)
                 module._losses(batch)["loss"].backward()
                 optimizer.step()
-                if i >= 5:
+                if i >= warmup:
                     times.append(time.perf_counter() - start)
+                else:
+                    warm[variant] += time.perf_counter() - start
         ms = {variant: 1e3 * float(np.median(times)) for variant, (_, _, times) in variants.items()}
         nodes = float(np.mean([b.num_nodes for b in batches]))
         edges = float(np.mean([b.edge_index.shape[1] for b in batches]))
-        result[name] = dict(ms_per_step=ms["main"], steps_per_s=1e3 / ms["main"], ms_per_step_before=ms["before"],
-                            speedup=ms["before"] / ms["main"], nodes_per_batch=nodes, edges_per_batch=edges)
-        print(f"{name:<8} {ms['main']:7.1f} ms/step ({1e3 / ms['main']:5.1f} steps/s), before {ms['before']:7.1f} ms: "
-              f"{result[name]['speedup']:.2f}x  ({nodes:.0f} nodes, {edges:.0f} edges per batch of "
-              f"{datamodule.batch_size})", flush=True)
+        result[name] = {"ms_per_step": ms["main"], "steps_per_s": 1e3 / ms["main"], f"ms_per_step_{label}": ms[label],
+                        "nodes_per_batch": nodes, "edges_per_batch": edges}
+        if compiled:  # the compiled step beside the eager one, and what compiling cost
+            result[name].update(speedup=ms["main"] / ms[label], compile_s=warm[label] - warm["main"])
+            print(f"{name:<8} {ms['main']:7.1f} ms/step eager, {ms[label]:7.1f} ms compiled: "
+                  f"{result[name]['speedup']:.2f}x, compiling {result[name]['compile_s']:.0f} s  ({nodes:.0f} nodes, "
+                  f"{edges:.0f} edges per batch of {datamodule.batch_size})", flush=True)
+        else:
+            result[name]["speedup"] = ms[label] / ms["main"]
+            print(f"{name:<8} {ms['main']:7.1f} ms/step ({1e3 / ms['main']:5.1f} steps/s), before {ms[label]:7.1f} ms: "
+                  f"{result[name]['speedup']:.2f}x  ({nodes:.0f} nodes, {edges:.0f} edges per batch of "
+                  f"{datamodule.batch_size})", flush=True)
     return result
 
 
 def main(argv: list[str]) -> None:
     parser = argparse.ArgumentParser(prog="python -m rgns.bench training", description=__doc__.splitlines()[0])
     parser.add_argument("--main", action="store_true", help="the main preset's models on its dataset instead")
+    parser.add_argument("--compile", action="store_true",
+                        help="with --main: beside each step, the same model with module.compile=true")
     parser.add_argument("--models", nargs="+", default=["rgns", "gns", "sep_gns"])
     parser.add_argument("--particles", type=int, default=1000)
     parser.add_argument("--latent", type=int, default=64)
@@ -130,7 +151,7 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     if args.main:
-        result = main_preset(args.models, args.steps, [])
+        result = main_preset(args.models, args.steps, [], compiled=args.compile)
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(result, indent=2) + "\n")

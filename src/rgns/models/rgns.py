@@ -64,6 +64,15 @@ class RGNS(Simulator):
         self.processor = RRMP(latent, layers, self.condition_channels, hidden, hidden_layers, edges,
                               memory_saving, zero_init, node_norm)
 
+    def compile_network(self, **options) -> None:
+        """See :meth:`~rgns.models.base.Simulator.compile_network`. Not with the memory-saving
+        backward: its autograd function frees and restores storage, which a compiled graph does
+        not follow (compiled, it computes other velocities)."""
+        if self.processor.memory_saving:
+            raise ValueError("R-GNS compiles only without the memory-saving backward: set model.memory_saving=false "
+                             "(at the main job's size plain autograd is also the faster one on a CPU)")
+        super().compile_network(**options)
+
     def conditions(self, position: Tensor, particle_type: Tensor, edge_index: Tensor) -> tuple[Tensor, Tensor]:
         """The fixed conditions of a step: edge latents ``[E, C]`` and node conditions ``[N, 2D + embedding]``."""
         condition = self.node_conditions(position, particle_type)  # [N, 2D + embedding]

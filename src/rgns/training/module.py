@@ -45,6 +45,9 @@ class SimulatorModule(L.LightningModule):
         position_correction, position_noise: the noise variants of
             :class:`~rgns.data.windows.WindowDataset`, applied to the start frame of the
             pushforward and unrolled losses as the datamodule applies them to one-step windows.
+        compile: run the model's network functions through ``torch.compile(dynamic=True)`` in
+            training steps (:meth:`~rgns.models.base.Simulator.compile_network`); validation and
+            a simulator loaded from the checkpoint run eager.
     """
 
     def __init__(
@@ -65,6 +68,7 @@ class SimulatorModule(L.LightningModule):
         lr_reference_batch: int | None = None,
         position_correction: float = 0.0,
         position_noise: float = 1.0,
+        compile: bool = False,
     ):
         super().__init__()
         # Hydra hands over DictConfigs: store plain values, so checkpoints load with weights_only
@@ -82,6 +86,10 @@ class SimulatorModule(L.LightningModule):
         self.loss = instantiate(loss)
         self.pushforward = Pushforward(**pushforward) if pushforward else None
         self.unroll = Unroll(**unroll) if unroll else None
+
+    def setup(self, stage: str) -> None:
+        if self.hparams.compile and not self.model.compiled:
+            self.model.compile_network(dynamic=True)  # graph sizes change with every batch
 
     # -- one step, both directions ------------------------------------------------------------
     def _direction(self, batch, direction: str, predicted: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -174,6 +182,11 @@ class SimulatorModule(L.LightningModule):
         return terms["loss"]
 
     def validation_step(self, batch, batch_idx: int) -> None:
+        # eager: a few no-grad rollouts every validation would not repay compiling their graphs
+        with torch.compiler.set_stance("force_eager"):
+            self._validate(batch, batch_idx)
+
+    def _validate(self, batch, batch_idx: int) -> None:
         if batch_idx == 0:  # here, not at epoch end: callbacks that swap weights in (EMA) have done so
             self._validation_rollouts()
         with torch.no_grad():
