@@ -107,6 +107,46 @@ def test_rgns_starts_as_constant_velocity_in_both_directions():
     torch.testing.assert_close(model.oldest_velocity(*args), state.velocity_history[:, 0], rtol=0, atol=1e-8)
 
 
+def gravity_metadata(dim: int = 2) -> dict:
+    return dict(metadata(dim), gravity=[0.0] * (dim - 1) + [-9.81])  # 6.1e-5 per frame^2 at dt = 0.0025
+
+
+def test_rgns_with_known_gravity_starts_as_ballistic_motion_in_both_directions():
+    model = RGNS(gravity_metadata(), history=K, known_gravity=True, **SMALL)
+    g = torch.tensor([0.0, -9.81 * 0.0025**2])
+    state = random_state()
+    edge_index = radius_graph(state.position, model.radius)
+    args = (state.position, state.velocity_history, state.particle_type, edge_index)
+    torch.testing.assert_close(model.next_velocity(*args), state.velocity_history[:, -1] + g, rtol=0, atol=1e-8)
+    torch.testing.assert_close(model.oldest_velocity(*args), state.velocity_history[:, 0] - g, rtol=0, atol=1e-8)
+    batch = training_batch()
+    forward, inverse = model.both_velocities(batch.pos, batch.forward_input, batch.inverse_input, batch.particle_type,
+                                             batch.edge_index, batch.batch)
+    torch.testing.assert_close(forward, batch.forward_input[:, -1] + g, rtol=0, atol=1e-8)
+    torch.testing.assert_close(inverse, batch.inverse_input[:, 0] - g, rtol=0, atol=1e-8)
+    plain = RGNS(metadata(), history=K, **SMALL)  # the option changes nothing else: same parameters, same checkpoints
+    assert list(plain.state_dict()) == list(model.state_dict())
+
+
+@pytest.mark.parametrize("cls", [GNS, SepGNS])
+def test_gns_with_known_gravity_predicts_acceleration_beyond_gravity(cls):
+    """A zero decoder output is free fall (known_gravity) or the dataset's mean acceleration."""
+    state = random_state()
+    edge_index = radius_graph(state.position, 0.1)
+    args = (state.position, state.velocity_history, state.particle_type, edge_index)
+    for known, acceleration in ((True, torch.tensor([0.0, -9.81 * 0.0025**2])), (False, torch.zeros(2))):
+        model = cls(gravity_metadata(), history=K, known_gravity=known, **SMALL)
+        gns = [model] if cls is GNS else [model.forward_gns, model.backward_gns]
+        for network in gns:
+            torch.nn.init.zeros_(network.decoder[-1].weight)
+            torch.nn.init.zeros_(network.decoder[-1].bias)
+        torch.testing.assert_close(model.next_velocity(*args), state.velocity_history[:, -1] + acceleration,
+                                   rtol=0, atol=1e-9)
+        if cls is SepGNS:  # backwards in time gravity keeps its sign: v^{t-k+1} = v^{t-k+2} - g
+            torch.testing.assert_close(model.oldest_velocity(*args), state.velocity_history[:, 0] - acceleration,
+                                       rtol=0, atol=1e-9)
+
+
 def test_rgns_forward_only_training_trains_the_same_network():
     """R-GNS† is a training option: the forward loss alone reaches every parameter."""
     model = RGNS(metadata(), **SMALL)
@@ -162,9 +202,10 @@ def test_gns_difference_basis_reads_the_newest_velocity_and_accelerations(histor
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("encoder", ["ilp", "mlp"])
 @pytest.mark.parametrize("basis", ["velocity", "differences"])
-def test_inverse_step_recovers_position_and_known_history_exactly(dim, encoder, basis):
+@pytest.mark.parametrize("known_gravity", [False, True])
+def test_inverse_step_recovers_position_and_known_history_exactly(dim, encoder, basis, known_gravity):
     torch.manual_seed(dim)
-    model = RGNS(metadata(dim), latent=16, layers=10, encoder=encoder, basis=basis)
+    model = RGNS(gravity_metadata(dim), latent=16, layers=10, encoder=encoder, basis=basis, known_gravity=known_gravity)
     perturb(model, seed=dim)
     state = random_state(dim=dim, seed=dim)
     back = model.inverse_step(model.step(state))
@@ -174,11 +215,13 @@ def test_inverse_step_recovers_position_and_known_history_exactly(dim, encoder, 
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_unmasked_history_round_trip_is_exact_up_to_the_ilp_projection(dim, seed):
+@pytest.mark.parametrize("known_gravity", [False, True])
+def test_unmasked_history_round_trip_is_exact_up_to_the_ilp_projection(dim, seed, known_gravity):
     """inverse_history(forward_history(V)) differs from V only because decoding then encoding
-    projects the latent onto the range of W; the latent round trip itself is exact."""
+    projects the latent onto the range of W; the latent round trip itself is exact (with
+    known_gravity too: the shift by g is undone before encoding)."""
     torch.manual_seed(seed)
-    model = RGNS(metadata(dim), latent=16, layers=10)
+    model = RGNS(gravity_metadata(dim), latent=16, layers=10, known_gravity=known_gravity)
     state = random_state(dim=dim, seed=seed)
     edge_index = radius_graph(state.position, model.radius)
     graph = (state.position, state.particle_type, edge_index)

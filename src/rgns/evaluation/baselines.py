@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from rgns.models import Simulator
+from rgns.models.base import Simulator, dataset_gravity
 
 
 class ConstantVelocity(Simulator):
@@ -54,11 +54,7 @@ class Ballistic(ConstantVelocity):
 
     def __init__(self, metadata: dict, history: int = 5):
         super().__init__(metadata, history)
-        if metadata.get("gravity") is not None:
-            gravity = torch.as_tensor(metadata["gravity"], dtype=torch.float32) * float(metadata["dt"]) ** 2
-        else:
-            gravity = torch.as_tensor(metadata["acc_mean"], dtype=torch.float32)
-        self.register_buffer("gravity", gravity)  # [D], per frame^2
+        self.register_buffer("gravity", dataset_gravity(metadata))  # [D], per frame^2
 
     def walls(self, position: Tensor, velocity: Tensor) -> Tensor:
         """The velocity that takes ``position`` to ``position + velocity`` clamped into the box:

@@ -294,8 +294,25 @@ class Simulator(nn.Module):
         return f"dim={self.dim}, history={self.history}, radius={self.radius:g}, hard_walls={self.hard_walls}"
 
 
+def dataset_gravity(metadata: dict, gravity: list[float] | None = None) -> Tensor:
+    """The external force per unit mass in position units per frame squared. ``[D]``
+
+    ``gravity`` (m/s^2, given) or ``metadata["gravity"]`` (the generated datasets'), times
+    ``dt^2``; data that carries neither (DeepMind's) has its mean acceleration ``acc_mean`` stand
+    in, as for the ballistic baseline (rgns.evaluation.baselines).
+    """
+    if gravity is None:
+        gravity = metadata.get("gravity")
+    if gravity is None:
+        return torch.as_tensor(metadata["acc_mean"], dtype=torch.float32)
+    gravity = torch.as_tensor(gravity, dtype=torch.float32)
+    if gravity.shape != (int(metadata["dim"]),):
+        raise ValueError(f"gravity {gravity.tolist()} needs {metadata['dim']} components")
+    return gravity * float(metadata["dt"]) ** 2
+
+
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
 
 
-__all__ = ["State", "Simulator", "count_parameters"]
+__all__ = ["State", "Simulator", "count_parameters", "dataset_gravity"]

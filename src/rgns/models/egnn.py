@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from rgns.data.contract import KINEMATIC
-from rgns.models.base import Simulator
+from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn.egnn import EquivariantLayer, smooth_norm
 
 
@@ -51,11 +51,7 @@ class EGNN(Simulator):
                  coordinate_aggregation: str = "mean", normalise: bool = False, tanh: bool = False,
                  coordinate_gain: float = 1e-3):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
-        if metadata.get("gravity") is not None:
-            gravity = torch.as_tensor(metadata["gravity"], dtype=torch.float32) * float(metadata["dt"]) ** 2
-        else:  # DeepMind's metadata has no gravity: the mean acceleration stands in
-            gravity = torch.as_tensor(metadata["acc_mean"], dtype=torch.float32)
-        self.register_buffer("gravity", gravity)  # [D], position units per frame^2
+        self.register_buffer("gravity", dataset_gravity(metadata))  # [D], position units per frame^2
         walls = 2 * self.dim
         invariants = 2 * history + 2 * walls + embedding
         self.encoder = nn.Linear(invariants, latent)

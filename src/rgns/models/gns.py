@@ -6,7 +6,7 @@ import torch
 from torch import Tensor, nn
 
 from rgns.data.graph import edge_features
-from rgns.models.base import Simulator
+from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn import InteractionNetwork, mlp
 
 
@@ -28,17 +28,25 @@ class GNS(Simulator):
             (DeepMind's: the k normalised velocities) or ``"differences"`` (the newest velocity
             normalised and the k - 1 accelerations over their std:
             :meth:`~rgns.models.base.Simulator.to_differences`). (default: ``"velocity"``)
+        known_gravity (bool, optional): the decoder predicts the acceleration beyond gravity
+            (:func:`~rgns.models.base.dataset_gravity`), normalised, instead of the acceleration
+            beyond the dataset's mean: a particle the network leaves alone falls freely.
+            (default: :obj:`False`)
     """
 
     display_name = "GNS"
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False,
-                 basis: str = "velocity"):
+                 basis: str = "velocity", known_gravity: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         if basis not in ("velocity", "differences"):
             raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
         self.basis = basis
+        self.known_gravity = bool(known_gravity)
+        # the acceleration a zero output of the decoder stands for (computed, not saved in checkpoints)
+        reference = dataset_gravity(metadata) if known_gravity else self.acc_mean.clone()
+        self.register_buffer("acc_reference", reference, persistent=False)  # [D]
         node_in = history * self.dim + self.condition_channels
         self.node_encoder = mlp(node_in, latent, latent, hidden_layers)
         self.edge_encoder = mlp(self.dim + 1, latent, latent, hidden_layers)
@@ -61,7 +69,7 @@ class GNS(Simulator):
         return x
 
     def decode(self, x: Tensor) -> Tensor:
-        return self.decoder(x) * self.acc_std_noisy + self.acc_mean  # [N, D], physical acceleration
+        return self.decoder(x) * self.acc_std_noisy + self.acc_reference  # [N, D], physical acceleration
 
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from rgns.data.contract import KINEMATIC
 from rgns.data.graph import batched_radius_graph
-from rgns.models.base import State
+from rgns.models.base import State, dataset_gravity
 from rgns.models.gns import GNS
 
 # sigma_D of the quintic spline (Morris et al. 1997) with h = 1: the kernel integrates to 1
@@ -134,23 +134,6 @@ class SPHRelaxation(nn.Module):
     def extra_repr(self) -> str:
         return (f"spacing={self.spacing:g}, loops={self.loops}, step={self.step:g}, "
                 f"sound_speed={self.sound_speed:g}, density_bounds={self.density_bounds}")
-
-
-def dataset_gravity(metadata: dict, gravity: list[float] | None = None) -> Tensor:
-    """The external force per unit mass in position units per frame squared. ``[D]``
-
-    ``gravity`` (m/s^2, given) or ``metadata["gravity"]`` (the generated datasets'), times
-    ``dt^2``; data that carries neither (DeepMind's) has its mean acceleration ``acc_mean`` stand
-    in, as for the ballistic baseline (rgns.evaluation.baselines).
-    """
-    if gravity is None:
-        gravity = metadata.get("gravity")
-    if gravity is None:
-        return torch.as_tensor(metadata["acc_mean"], dtype=torch.float32)
-    gravity = torch.as_tensor(gravity, dtype=torch.float32)
-    if gravity.shape != (int(metadata["dim"]),):
-        raise ValueError(f"gravity {gravity.tolist()} needs {metadata['dim']} components")
-    return gravity * float(metadata["dt"]) ** 2
 
 
 def dataset_spacing(metadata: dict, spacing: float | None = None) -> float:

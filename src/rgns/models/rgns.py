@@ -5,7 +5,7 @@ import torch
 from torch import Tensor
 
 from rgns.data.graph import edge_features
-from rgns.models.base import Simulator
+from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn import ILP, RRMP, MLPEncoderDecoder, mlp
 
 
@@ -39,6 +39,12 @@ class RGNS(Simulator):
             (default: :obj:`True`)
         basis (str, optional): the node features the ILP reads, ``"velocity"`` (normalised
             velocities) or ``"differences"`` (see :meth:`to_basis`). (default: ``"velocity"``)
+        known_gravity (bool, optional): a fixed shift by gravity ``g`` per frame
+            (:func:`~rgns.models.base.dataset_gravity`) on the later history's side of the map:
+            forward ``V^{t+1} = decode(RRMP(encode(V^t))) + g``, inverse
+            ``V^t = decode(RRMP^{-1}(encode(V^{t+1} - g)))``, still exact inverses of each other.
+            The identity latent map is then ballistic motion in both directions of time instead
+            of constant velocity. (default: :obj:`False`)
     """
 
     display_name = "R-GNS"
@@ -47,11 +53,14 @@ class RGNS(Simulator):
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
                  edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, node_norm: bool = True,
-                 embedding: int = 16, hard_walls: bool = False, basis: str = "velocity"):
+                 embedding: int = 16, hard_walls: bool = False, basis: str = "velocity", known_gravity: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         if basis not in ("velocity", "differences"):
             raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
         self.basis = basis
+        self.known_gravity = bool(known_gravity)
+        shift = dataset_gravity(metadata) if known_gravity else torch.zeros(self.dim)
+        self.register_buffer("gravity_shift", shift, persistent=False)  # [D], computed, not saved in checkpoints
         node_in = history * self.dim
         if encoder == "ilp":
             self.projection = ILP(node_in, latent)
@@ -110,16 +119,17 @@ class RGNS(Simulator):
 
     def forward_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                         edge_index: Tensor) -> Tensor:
-        """The unmasked forward output: ``V^t [N, k, D] -> decode(RRMP(encode(V^t))) [N, k, D]``."""
+        """The unmasked forward output: ``V^t [N, k, D] -> decode(RRMP(encode(V^t))) (+ g) [N, k, D]``."""
         edge_attr, condition = self.conditions(position, particle_type, edge_index)
         latent = self.processor(self.encode(velocity_history), edge_index, edge_attr, condition)
-        return self.decode(latent)
+        return self.decode(latent) + self.gravity_shift
 
     def inverse_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                         edge_index: Tensor) -> Tensor:
-        """The unmasked inverse output: ``V^{t+1} [N, k, D] -> decode(RRMP^{-1}(encode(V^{t+1}))) [N, k, D]``."""
+        """The unmasked inverse output: ``V^{t+1} [N, k, D] -> decode(RRMP^{-1}(encode(V^{t+1} (- g)))) [N, k, D]``."""
         edge_attr, condition = self.conditions(position, particle_type, edge_index)
-        latent = self.processor.inverse(self.encode(velocity_history), edge_index, edge_attr, condition)
+        latent = self.processor.inverse(self.encode(velocity_history - self.gravity_shift), edge_index, edge_attr,
+                                        condition)
         return self.decode(latent)
 
     def both_velocities(self, position: Tensor, forward_history: Tensor, inverse_history: Tensor,
@@ -128,8 +138,10 @@ class RGNS(Simulator):
         encoder runs once for the two)."""
         edge_attr, condition = self.conditions(position, particle_type, edge_index)
         forward = self.processor(self.encode(forward_history), edge_index, edge_attr, condition)
-        inverse = self.processor.inverse(self.encode(inverse_history), edge_index, edge_attr, condition)
-        return self.decode(forward)[:, -1], self.decode(inverse)[:, 0]  # newest slot, oldest slot
+        inverse = self.processor.inverse(self.encode(inverse_history - self.gravity_shift), edge_index, edge_attr,
+                                         condition)
+        return (self.decode(forward)[:, -1] + self.gravity_shift,  # newest slot
+                self.decode(inverse)[:, 0])  # oldest slot
 
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
