@@ -40,11 +40,13 @@ echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train
 # 4 couplings, GNS has 4 interaction layers; pushforward helped GNS, R-GNS needs the time for steps)
 # (the step budgets end well within the caps on a 2-core machine, so a run's result is its seed's;
 # each is a multiple of the validation interval, 2,500: the evaluated checkpoint is chosen at validations)
-# (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU)
-train rgns 15000 00:00:14:00 model.memory_saving=false "$@" &
+# (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU;
+# module.compile: torch.compile'd training steps, 1.5-1.7x the steps/s after a compilation of 0.5-2 min,
+# docs/benchmarks.md)
+train rgns 15000 00:00:14:00 model.memory_saving=false module.compile=true "$@" &
 first=$!
-( train gns 10000 00:00:09:00 model.layers=4 recipe=pushforward "$@" \
-  && train sep_gns 5000 00:00:06:30 model.layers=4 recipe=pushforward "$@" ) &
+( train gns 10000 00:00:09:00 model.layers=4 recipe=pushforward module.compile=true "$@" \
+  && train sep_gns 5000 00:00:06:30 model.layers=4 recipe=pushforward module.compile=true "$@" ) &
 second=$!
 status=0
 wait $first || status=$?

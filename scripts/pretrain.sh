@@ -22,8 +22,8 @@ mkdir -p "$dest" outputs/pretrain
 pretrain() {
   local model=$1 extra; shift
   case $model in  # step budgets sized for about an hour on one core beside another run (docs/pretrained.md)
-    rgns|rgns_forward_only) extra=(trainer.max_steps=60000 model.memory_saving=false) ;;
-    gns|sep_gns) extra=(trainer.max_steps=70000 model.layers=4 recipe=pushforward) ;;
+    rgns|rgns_forward_only) extra=(trainer.max_steps=60000 model.memory_saving=false module.compile=true) ;;
+    gns|sep_gns) extra=(trainer.max_steps=70000 model.layers=4 recipe=pushforward module.compile=true) ;;
     *) echo "unknown model $model (rgns rgns_forward_only gns sep_gns)" >&2; return 2 ;;
   esac
   local run=outputs/pretrain/$model
