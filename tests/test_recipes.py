@@ -155,6 +155,32 @@ def test_unrolled_loss_starts_from_positions_with_the_position_noise_asked_for(t
     assert (offset == 0) if scale == 0 else (offset > 1e-3)
 
 
+def test_unrolled_loss_draws_a_noise_level_per_window(tiny_dataset, monkeypatch):
+    """noise_low in the multi-step loss: each graph of the batch gets its own level (here drawn as
+    0 and 1: the first window starts clean, the second with the full noise)."""
+    import rgns.training.module as module_code
+
+    module = module_with(unroll={"steps": [0], "lengths": [2]})
+    module.hparams.noise_std, module.hparams.noise_low = 1e-2, 0.0
+    drawn = []
+    monkeypatch.setattr(module_code, "noise_level",
+                        lambda low, size=None: drawn.append((low, size)) or torch.tensor([0.0, 1.0]))
+    batch = windows_batch(tiny_dataset, lead=0, horizon=2)
+    starts, step = [], module.model.step
+
+    def recorded(state, kinematic_position=None):
+        starts.append(state.position.detach().clone())
+        return step(state, kinematic_position)
+
+    module.model.step = recorded
+    module._losses(batch)
+    assert drawn == [(0.0, 2)]
+    offset = (starts[0] - batch.frames[:, 5]).abs().max(dim=1).values  # [N]
+    moving = batch.particle_type == WATER
+    first, second = moving & (batch.batch == 0), moving & (batch.batch == 1)
+    assert offset[first].max() == 0 and offset[second].max() > 1e-3
+
+
 class Falling(Simulator):
     """A stand-in network that pushes particles into the floor: forward it predicts a fall,
     backward an earlier frame below the floor."""

@@ -6,7 +6,7 @@ import torch
 from rgns.data.contract import KINEMATIC, open_split
 from rgns.data.datamodule import ParticleDataModule
 from rgns.data.graph import radius_graph
-from rgns.data.windows import WindowDataset
+from rgns.data.windows import WindowDataset, noise_level, random_walk_noise
 
 K = 5
 
@@ -90,6 +90,43 @@ def test_position_noise_scales_only_the_positions_share_of_the_noise(split, scal
         torch.testing.assert_close(sample[key], plain[key], rtol=0, atol=0)
     assert (plain.pos - position[t]).abs().max() > 1e-3  # GNS's positions are noisy
     torch.testing.assert_close(sample.pos, position[t] + scale * (plain.pos - position[t]), rtol=0, atol=1e-6)
+
+
+def window_noise_rms(split, noise_low: float) -> torch.Tensor:
+    """The rms of each window's input-velocity noise (noisy - clean), over its moving particles."""
+    torch.manual_seed(0)
+    windows = WindowDataset(split, radius=0.08, history=K, noise_std=1e-2, noise_low=noise_low)
+    clean = WindowDataset(split, radius=0.08, history=K)
+    rms = []
+    for i in range(len(windows)):  # 42 windows
+        moving = windows[i].particle_type != KINEMATIC
+        noise = windows[i].forward_input - clean[i].forward_input
+        rms.append(noise[moving].pow(2).mean().sqrt())
+    return torch.stack(rms)
+
+
+def test_noise_low_draws_each_windows_noise_level_between_it_and_the_full_noise(split):
+    fixed = window_noise_rms(split, 1.0)  # GNS: every window at noise_std
+    full = fixed.median()
+    assert fixed.min() > 0.7 * full and fixed.max() < 1.3 * full
+    spread = window_noise_rms(split, 0.0)  # levels from clean to full
+    assert spread.min() < 0.2 * full and spread.max() > 0.7 * full and spread.max() < 1.3 * full
+    half = window_noise_rms(split, 0.5)
+    assert half.min() > 0.5 * 0.7 * full and half.max() < 1.3 * full
+    with pytest.raises(ValueError, match="noise_low"):
+        WindowDataset(split, radius=0.08, history=K, noise_std=1e-2, noise_low=1.5)
+
+
+def test_random_walk_noise_takes_a_level_per_particle():
+    torch.manual_seed(0)
+    level = torch.tensor([0.0, 1.0, 0.5])
+    noise = random_walk_noise((6, 3, 2), 1.0, torch.tensor([True, True, True]), level)
+    torch.manual_seed(0)
+    plain = random_walk_noise((6, 3, 2), 1.0, torch.tensor([True, True, True]))
+    torch.testing.assert_close(noise, plain * level[None, :, None], rtol=0, atol=0)
+    assert noise_level(1.0) == 1.0
+    levels = noise_level(0.25, size=1000)
+    assert levels.min() >= 0.25 and levels.max() <= 1 and levels.std() > 0.15
 
 
 def test_trajectory_cache_keeps_what_fits_and_changes_nothing(split):

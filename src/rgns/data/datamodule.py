@@ -38,8 +38,8 @@ class ParticleDataModule(L.LightningDataModule):
             :class:`~rgns.data.windows.WindowDataset`).
         cache_mb: training trajectories kept in memory once read, per process (MiB; see
             :class:`~rgns.data.windows.WindowDataset`).
-        position_correction, position_noise: variants of the training noise (see
-            :class:`~rgns.data.windows.WindowDataset`; 0 and 1: GNS's).
+        position_correction, position_noise, noise_low: variants of the training noise (see
+            :class:`~rgns.data.windows.WindowDataset`; 0, 1 and 1: GNS's).
     """
 
     def __init__(
@@ -56,6 +56,7 @@ class ParticleDataModule(L.LightningDataModule):
         cache_mb: float = 1024.0,
         position_correction: float = 0.0,
         position_noise: float = 1.0,
+        noise_low: float = 1.0,
     ):
         super().__init__()
         if isinstance(history, bool) or not isinstance(history, int) or history < 1:
@@ -72,6 +73,7 @@ class ParticleDataModule(L.LightningDataModule):
         self.lead, self.horizon = lead, horizon
         self.cache_mb = cache_mb
         self.position_correction, self.position_noise = position_correction, position_noise
+        self.noise_low = noise_low
         self._contents: Contents | None = None
 
     def prepare_data(self) -> None:
@@ -124,7 +126,7 @@ class ParticleDataModule(L.LightningDataModule):
         if stage in (None, "fit"):
             self.train_set = WindowDataset(self.split("train"), self.radius, self.history, self.noise_std,
                                            self.lead, self.horizon, self.cache_mb, self.position_correction,
-                                           self.position_noise)
+                                           self.position_noise, self.noise_low)
             self.valid_set = WindowDataset(self.split("valid"), self.radius, self.history, 0.0)
             self.valid_trajectories = TrajectoryDataset(self.split("valid"))
 

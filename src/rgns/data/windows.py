@@ -25,14 +25,27 @@ from rgns.data.contract import KINEMATIC, Split
 from rgns.data.graph import radius_graph
 
 
-def random_walk_noise(shape: tuple[int, int, int], noise_std: float, moving: torch.Tensor) -> torch.Tensor:
-    """Velocity noise accumulated over the window; the last velocity's noise has std ``noise_std``.
+def random_walk_noise(shape: tuple[int, int, int], noise_std: float, moving: torch.Tensor,
+                      level: torch.Tensor | float = 1.0) -> torch.Tensor:
+    """Velocity noise accumulated over the window; the last velocity's noise has std
+    ``noise_std`` times ``level`` (a number, or one per particle: e.g. each graph's level of a batch).
 
     Shapes:
-        shape: ``(W, N, D)`` velocities per window; moving: ``[N]`` bool  ->  ``[W, N, D]``
+        shape: ``(W, N, D)`` velocities per window; moving: ``[N]`` bool; level: ``[N]`` or a
+        number  ->  ``[W, N, D]``
     """
     steps = torch.randn(shape) * (noise_std / shape[0] ** 0.5)
-    return steps.cumsum(0) * moving[None, :, None]
+    scale = moving if isinstance(level, float) and level == 1.0 else moving * torch.as_tensor(level)
+    return steps.cumsum(0) * scale[None, :, None]
+
+
+def noise_level(low: float, generator: torch.Generator | None = None, size: int | None = None) -> torch.Tensor | float:
+    """A window's noise level, uniform in ``[low, 1]`` (``low = 1``: always 1, GNS's fixed noise;
+    ``low = 0``: from clean to the full ``noise_std``); ``size`` levels for a batch of windows."""
+    if low >= 1:
+        return 1.0
+    u = torch.rand(() if size is None else (size,), generator=generator)
+    return low + (1 - low) * u
 
 
 def scale_position_noise(noisy: torch.Tensor, clean: torch.Tensor, scale: float) -> torch.Tensor:
@@ -63,6 +76,9 @@ class WindowDataset(Dataset):
             next position lands that much nearer the clean ``p^{t+1}``; 0: GNS's target).
         position_noise: the input position's share of the noise, scaled (1: GNS's ``p~^t``; 0: the
             clean ``p^t`` with the noisy velocities).
+        noise_low: each window's noise std is ``noise_std`` times a level drawn uniformly in
+            ``[noise_low, 1]`` (1: GNS's fixed level). Rollouts feed the network its own, nearly
+            clean histories; with a fixed level it never sees one in training.
         cache_mb: trajectories kept in memory once read, up to this many MiB (per process: each
             DataLoader worker has its own); past it, only the last one read. Shuffled windows
             jump between trajectories, and reading one from the file costs more than building
@@ -71,12 +87,15 @@ class WindowDataset(Dataset):
 
     def __init__(self, split: Split, radius: float, history: int = 5, noise_std: float = 0.0,
                  lead: int = 0, horizon: int = 1, cache_mb: float = 1024.0, position_correction: float = 0.0,
-                 position_noise: float = 1.0):
+                 position_noise: float = 1.0, noise_low: float = 1.0):
+        if not 0 <= noise_low <= 1:
+            raise ValueError(f"noise_low={noise_low!r} must be in [0, 1] (1: every window at noise_std)")
         if lead < 0 or horizon < 1:
             raise ValueError(f"lead={lead} must be >= 0 and horizon={horizon} >= 1")
         self.split, self.radius, self.history, self.noise_std = split, radius, history, noise_std
         self.lead, self.horizon = lead, horizon
         self.position_correction, self.position_noise = position_correction, position_noise
+        self.noise_low = noise_low
         self.cache_bytes = int(cache_mb * 2**20)
         self._kept: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._kept_bytes = 0
@@ -108,7 +127,8 @@ class WindowDataset(Dataset):
         frames = position[t - k : t + 2]  # [k+2, N, D]: p^{t-k} .. p^{t+1}
         velocity = frames[1:] - frames[:-1]  # [k+1, N, D]: v^{t-k+1} .. v^{t+1}
         if self.noise_std > 0:
-            noisy = velocity + random_walk_noise(velocity.shape, self.noise_std, particle_type != KINEMATIC)
+            level = noise_level(self.noise_low)
+            noisy = velocity + random_walk_noise(velocity.shape, self.noise_std, particle_type != KINEMATIC, level)
         else:
             noisy = velocity
         noisy_position = frames[0] + noisy.cumsum(0)  # [k+1, N, D]: p~^{t-k+1} .. p~^{t+1}

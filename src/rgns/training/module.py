@@ -13,7 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from rgns.data.contract import KINEMATIC
-from rgns.data.windows import random_walk_noise, scale_position_noise
+from rgns.data.windows import noise_level, random_walk_noise, scale_position_noise
 from rgns.models import State
 from rgns.training.recipes import Pushforward, Unroll
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
@@ -42,7 +42,7 @@ class SimulatorModule(L.LightningModule):
         lr_reference_batch: scale the optimiser's learning rate linearly with the graphs per
             optimisation step (``data.batch_size`` x DDP ranks) over this reference batch (e.g.
             2, the batch the lr was tuned at); ``None`` keeps the lr as given.
-        position_correction, position_noise: the noise variants of
+        position_correction, position_noise, noise_low: the noise variants of
             :class:`~rgns.data.windows.WindowDataset`, applied to the start frame of the
             pushforward and unrolled losses as the datamodule applies them to one-step windows.
         compile: run the model's network functions through ``torch.compile(dynamic=True)`` in
@@ -68,6 +68,7 @@ class SimulatorModule(L.LightningModule):
         lr_reference_batch: int | None = None,
         position_correction: float = 0.0,
         position_noise: float = 1.0,
+        noise_low: float = 1.0,
         compile: bool = False,
     ):
         super().__init__()
@@ -121,8 +122,11 @@ class SimulatorModule(L.LightningModule):
         start = lead + k - pushed  # index of the frame the state starts at
         window = frames[:, start - k : start + 1].transpose(0, 1)  # [k + 1, N, D], clean
         velocity = window[1:] - window[:-1]  # [k, N, D]
-        if self.hparams.noise_std > 0:
-            velocity = velocity + random_walk_noise(tuple(velocity.shape), self.hparams.noise_std, moving.cpu()).to(velocity)
+        if self.hparams.noise_std > 0:  # a level per window (graph) of the batch, as the one-step windows draw theirs
+            level = noise_level(self.hparams.noise_low, size=int(batch.num_graphs))
+            level = level if isinstance(level, float) else level[batch.batch.cpu()]
+            velocity = velocity + random_walk_noise(tuple(velocity.shape), self.hparams.noise_std, moving.cpu(),
+                                                    level).to(velocity)
         # the start frame, noisy (its share of the noise scaled as in the one-step windows)
         noisy_last = scale_position_noise(window[0] + velocity.sum(0), window[-1], self.hparams.position_noise)
         # the targets move with the start frame's noise (as in GNS), less the corrected fraction
