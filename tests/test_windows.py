@@ -168,6 +168,20 @@ def test_datamodule_batches_two_graphs(tiny_dataset):
     assert (batch.batch[batch.edge_index[0]] == batch.batch[batch.edge_index[1]]).all()
 
 
+def test_validation_windows_come_in_a_fixed_order_spread_over_the_split(tiny_dataset):
+    """limit_val_batches validates on the first batches: they must not be one trajectory's first frames."""
+    datamodule = ParticleDataModule(str(tiny_dataset), num_workers=0, noise_std=1e-2)
+    datamodule.setup("fit")
+    first = [(round(float(b.pos[0, 0]), 6), b.num_graphs) for b in list(datamodule.val_dataloader())[:4]]
+    again = [(round(float(b.pos[0, 0]), 6), b.num_graphs) for b in list(datamodule.val_dataloader())[:4]]
+    assert first == again  # the same windows at every validation
+    loader = datamodule.val_dataloader()
+    seen = [datamodule.valid_set.index[i] for i in loader.dataset.indices[: 4 * datamodule.batch_size]]
+    assert {s for s, _ in seen} == {0, 1}  # both validation trajectories within the first 4 batches
+    assert max(t for _, t in seen) - min(t for _, t in seen) > 5  # and frames far apart
+    assert sorted(loader.dataset.indices) == list(range(len(datamodule.valid_set)))  # every window, once
+
+
 def test_missing_dataset_names_the_command(tmp_path):
     dm = ParticleDataModule(str(tmp_path / "nowhere"))
     with pytest.raises(ValueError, match="rgns.data.generate"):

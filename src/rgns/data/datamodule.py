@@ -6,6 +6,8 @@ from pathlib import Path
 from typing import Callable
 
 import lightning as L
+import torch
+from torch.utils.data import Subset
 from torch_geometric.loader import DataLoader
 
 from rgns.data.contract import Contents, DatasetError, check_dataset, open_split
@@ -143,5 +145,9 @@ class ParticleDataModule(L.LightningDataModule):
         return self._loader(self.train_set, shuffle=True)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.valid_set, shuffle=False)
+        # the windows in one fixed shuffled order: validation on the first batches only
+        # (trainer.limit_val_batches) then covers every trajectory and phase, not the first frames
+        # of the first trajectory (on the default data: free fall alone)
+        order = torch.randperm(len(self.valid_set), generator=torch.Generator().manual_seed(0)).tolist()
+        return self._loader(Subset(self.valid_set, order), shuffle=False)
 
