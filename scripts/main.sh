@@ -40,13 +40,15 @@ echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train
 # 4 couplings, GNS has 4 interaction layers; pushforward helped GNS, R-GNS needs the time for steps)
 # (the step budgets end well within the caps on a 2-core machine, so a run's result is its seed's;
 # each is a multiple of the validation interval, 2,500: the evaluated checkpoint is chosen at validations)
-# (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU;
-# module.compile: torch.compile'd training steps, 1.5-1.7x the steps/s after a compilation of 0.5-2 min,
-# docs/benchmarks.md)
-train rgns 15000 00:00:14:00 model.memory_saving=false module.compile=true "$@" &
+# (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU,
+# and compiled (module.compile): 1.2x its steps/s in this job after about 2 min of compilation; GNS and
+# Sep-GNS stay eager, their shorter runs do not repay compiling; docs/main_job.md)
+# (budgets for a 2-core machine that trains GNS 32x4 at about 20 steps/s per process, as measured on
+# 2026-12-02; on a faster machine every run ends on its steps before its cap)
+train rgns 12500 00:00:12:00 model.memory_saving=false module.compile=true "$@" &
 first=$!
-( train gns 10000 00:00:09:00 model.layers=4 recipe=pushforward module.compile=true "$@" \
-  && train sep_gns 5000 00:00:06:30 model.layers=4 recipe=pushforward module.compile=true "$@" ) &
+( train gns 7500 00:00:07:30 model.layers=4 recipe=pushforward "$@" \
+  && train sep_gns 5000 00:00:04:30 model.layers=4 recipe=pushforward "$@" ) &
 second=$!
 status=0
 wait $first || status=$?
