@@ -47,8 +47,8 @@ echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train
 # 2026-12-02; on a faster machine every run ends on its steps before its cap)
 train rgns 12500 00:00:12:00 model.memory_saving=false module.compile=true "$@" &
 first=$!
-( train gns 7500 00:00:07:30 model.layers=4 recipe=pushforward "$@" \
-  && train sep_gns 5000 00:00:04:30 model.layers=4 recipe=pushforward "$@" ) &
+( train gns 7500 00:00:08:30 model.layers=4 recipe=pushforward "$@" \
+  && train sep_gns 5000 00:00:04:00 model.layers=4 recipe=pushforward "$@" ) &
 second=$!
 status=0
 wait $first || status=$?
