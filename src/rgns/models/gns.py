@@ -44,9 +44,8 @@ class GNS(Simulator):
             raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
         self.basis = basis
         self.known_gravity = bool(known_gravity)
-        # the acceleration a zero output of the decoder stands for (computed, not saved in checkpoints)
-        reference = dataset_gravity(metadata) if known_gravity else self.acc_mean.clone()
-        self.register_buffer("acc_reference", reference, persistent=False)  # [D]
+        if self.known_gravity:  # what a zero output of the decoder stands for (computed, not saved in checkpoints)
+            self.register_buffer("gravity_reference", dataset_gravity(metadata), persistent=False)  # [D]
         node_in = history * self.dim + self.condition_channels
         self.node_encoder = mlp(node_in, latent, latent, hidden_layers)
         self.edge_encoder = mlp(self.dim + 1, latent, latent, hidden_layers)
@@ -69,7 +68,8 @@ class GNS(Simulator):
         return x
 
     def decode(self, x: Tensor) -> Tensor:
-        return self.decoder(x) * self.acc_std_noisy + self.acc_reference  # [N, D], physical acceleration
+        reference = self.gravity_reference if self.known_gravity else self.acc_mean  # [D]
+        return self.decoder(x) * self.acc_std_noisy + reference  # [N, D], physical acceleration
 
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
