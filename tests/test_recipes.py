@@ -53,6 +53,18 @@ def module_with(pushforward=None, unroll=None, lead: int = 0, step: int = 100) -
     return module
 
 
+def record_starts(module: SimulatorModule) -> list[torch.Tensor]:
+    """Wrap the model's step: record, per call, the position of the state it starts from."""
+    starts, step = [], module.model.step
+
+    def recorded(state, kinematic_position=None):
+        starts.append(state.position.detach().clone())
+        return step(state, kinematic_position)
+
+    module.model.step = recorded
+    return starts
+
+
 def record_steps(module: SimulatorModule) -> list[bool]:
     """Wrap the model's step: record, per call, whether gradients were being recorded."""
     calls, step = [], module.model.step
@@ -142,13 +154,7 @@ def test_unrolled_loss_starts_from_positions_with_the_position_noise_asked_for(t
     module = module_with(unroll={"steps": [0], "lengths": [2]})
     module.hparams.noise_std, module.hparams.position_noise = 1e-2, scale
     batch = windows_batch(tiny_dataset, lead=0, horizon=2)
-    starts, step = [], module.model.step
-
-    def recorded(state, kinematic_position=None):
-        starts.append(state.position.detach().clone())
-        return step(state, kinematic_position)
-
-    module.model.step = recorded
+    starts = record_starts(module)
     module._losses(batch)
     moving = batch.particle_type == WATER
     offset = (starts[0] - batch.frames[:, 5])[moving].abs().max()
@@ -166,13 +172,7 @@ def test_unrolled_loss_draws_a_noise_level_per_window(tiny_dataset, monkeypatch)
     monkeypatch.setattr(module_code, "noise_level",
                         lambda low, size=None: drawn.append((low, size)) or torch.tensor([0.0, 1.0]))
     batch = windows_batch(tiny_dataset, lead=0, horizon=2)
-    starts, step = [], module.model.step
-
-    def recorded(state, kinematic_position=None):
-        starts.append(state.position.detach().clone())
-        return step(state, kinematic_position)
-
-    module.model.step = recorded
+    starts = record_starts(module)
     module._losses(batch)
     assert drawn == [(0.0, 2)]
     offset = (starts[0] - batch.frames[:, 5]).abs().max(dim=1).values  # [N]

@@ -16,6 +16,8 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["model.latent=16", "model.layers=2", "data.num_workers=0", "trainer.log_every_n_steps=1"]
+EMA = ("+callbacks.ema={_target_: lightning.pytorch.callbacks.WeightAveraging, "  # weight averaging, fast
+       "multi_avg_fn: {_target_: torch.optim.swa_utils.get_ema_multi_avg_fn, decay: 0.5}}")
 
 
 def train(cwd: Path, *overrides: str, check: bool = True, **popen) -> subprocess.CompletedProcess:
@@ -171,10 +173,8 @@ def test_validation_rollouts_score_the_averaged_weights(dataset, tmp_path):
     from rgns.training.rollouts import forward_rollout
 
     run = tmp_path / "run"
-    ema = ("+callbacks.ema={_target_: lightning.pytorch.callbacks.WeightAveraging, "
-           "multi_avg_fn: {_target_: torch.optim.swa_utils.get_ema_multi_avg_fn, decay: 0.5}}")
     train(tmp_path, "data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.max_steps=12",
-          "trainer.val_check_interval=12", "module.optimizer.lr=1e-2", "callbacks.early_stopping=null", ema,
+          "trainer.val_check_interval=12", "module.optimizer.lr=1e-2", "callbacks.early_stopping=null", EMA,
           f"hydra.run.dir={run}", *TINY)
     checkpoint = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
     assert checkpoint["global_step"] == 12 and "current_model_state" in checkpoint  # averaged and raw kept
@@ -200,10 +200,8 @@ def test_compiled_training_saves_an_eager_checkpoint(dataset, tmp_path):
     from rgns.training.module import load_simulator
 
     run = tmp_path / "run"
-    ema = ("+callbacks.ema={_target_: lightning.pytorch.callbacks.WeightAveraging, "
-           "multi_avg_fn: {_target_: torch.optim.swa_utils.get_ema_multi_avg_fn, decay: 0.5}}")
     train(tmp_path, "data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.max_steps=6",
-          "trainer.val_check_interval=3", "module.compile=true", "model.memory_saving=false", ema,
+          "trainer.val_check_interval=3", "module.compile=true", "model.memory_saving=false", EMA,
           f"hydra.run.dir={run}", *TINY)
     model, info = load_simulator(str(run / "checkpoints" / "last.ckpt"))
     assert info["global_step"] == 6 and info["hparams"]["compile"] is True

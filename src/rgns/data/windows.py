@@ -35,16 +35,15 @@ def random_walk_noise(shape: tuple[int, int, int], noise_std: float, moving: tor
         number  ->  ``[W, N, D]``
     """
     steps = torch.randn(shape) * (noise_std / shape[0] ** 0.5)
-    scale = moving if isinstance(level, float) and level == 1.0 else moving * torch.as_tensor(level)
-    return steps.cumsum(0) * scale[None, :, None]
+    return steps.cumsum(0) * (moving * torch.as_tensor(level))[None, :, None]
 
 
-def noise_level(low: float, generator: torch.Generator | None = None, size: int | None = None) -> torch.Tensor | float:
+def noise_level(low: float, size: int | None = None) -> torch.Tensor | float:
     """A window's noise level, uniform in ``[low, 1]`` (``low = 1``: always 1, GNS's fixed noise;
     ``low = 0``: from clean to the full ``noise_std``); ``size`` levels for a batch of windows."""
     if low >= 1:
         return 1.0
-    u = torch.rand(() if size is None else (size,), generator=generator)
+    u = torch.rand(() if size is None else (size,))
     return low + (1 - low) * u
 
 
