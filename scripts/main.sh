@@ -63,13 +63,14 @@ fi
 phase "training, both processes (each run's own split of steps and validation: $out/train/<model>/timing.json)"
 
 echo "== 3/3 evaluation -> $out/evaluation"
-# every forward metric on all 8 test trajectories; the inverse at K = 1, 5, 20 and the table's 40;
+# every forward metric on all 8 test trajectories, the rollouts in two processes (workers=2: the
+# networks' in a forked copy and here, the solver references here); the inverse at K = 1, 5, 20 and the table's 40;
 # beside the fresh models, the long-trained ones of pretrained/waterdrop40_main/ (scripts/pretrain.sh)
 # that are there, labelled "pretrained" (docs/pretrained.md); data_root: this checkout's dataset for
 # all of them (a checkpoint records the absolute dataset path of the machine that trained it; the
 # generator makes the same bytes everywhere)
 pretrained=$(ls pretrained/waterdrop40_main/*.ckpt 2>/dev/null | paste -sd, - || true)
-.venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best trajectories=8 \
+.venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best trajectories=8 workers=2 \
   'task.inverse.horizons=[1,5,20,40]' "pretrained=[$pretrained]" data_root=datasets/waterdrop40_main \
   hydra.run.dir="$out/evaluation"
 phase "evaluation"

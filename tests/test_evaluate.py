@@ -20,11 +20,11 @@ from PIL import Image
 
 from rgns import config_dir
 from rgns.data.contract import SPLITS, WATER, write_metadata, write_split
-from rgns.evaluation.baselines import ConstantVelocity
+from rgns.evaluation.baselines import Ballistic, ConstantVelocity
 from rgns.evaluation.methods import Method, _disambiguate, describe, find_checkpoints
 from rgns.evaluation.run import evaluate
-from rgns.evaluation.tasks import Dataset, ForwardRollout, InverseConsistency
-from rgns.training.rollouts import inverse_then_forward
+from rgns.evaluation.tasks import Dataset, ForwardRollout, InverseConsistency, in_parallel
+from rgns.training.rollouts import forward_rollout, inverse_then_forward
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="1")
@@ -66,6 +66,69 @@ def test_forward_task_reports_where_a_rollout_leaves_the_box():
     inverse, _ = InverseConsistency(horizons=[1, 5, 100], threshold=1e-3)([method], dataset)
     assert inverse["settings"]["horizons"] == [1, 5]  # K = 100 does not fit in 40 frames
     assert inverse["methods"]["Const. velocity"]["horizons"][5]["inverse_mse"] == pytest.approx(0.0, abs=1e-10)
+
+
+
+def pid_after(job: int) -> tuple[int, int]:
+    import time
+    time.sleep(0.05)  # long enough that a forked worker gets some of the jobs
+    return job * job, os.getpid()
+
+
+def test_jobs_in_parallel_give_the_serial_results_and_keep_pinned_jobs_here():
+    jobs = list(range(12))
+    done = in_parallel(jobs, pid_after, here=[0, 5], workers=2)
+    assert [value for value, _ in done] == [j * j for j in jobs]
+    assert done[0][1] == done[5][1] == os.getpid()  # the pinned jobs ran in this process
+    assert {pid for _, pid in done} - {os.getpid()}  # a worker took some of the others
+    assert in_parallel(jobs, pid_after, here=[], workers=1) == [(j * j, os.getpid()) for j in jobs]
+
+
+def fails_on_seven(job: int) -> int:
+    if job == 7 and os.getpid() != PARENT:
+        raise ValueError("planted failure")
+    pid_after(job)  # the pinned jobs keep this process busy while the worker takes job 7
+    return job
+
+
+PARENT = os.getpid()
+
+
+def test_a_workers_error_reaches_the_caller_with_its_traceback():
+    with pytest.raises(RuntimeError, match="planted failure"):
+        in_parallel(list(range(8)), fails_on_seven, here=list(range(7)), workers=2)  # job 7 is the worker's
+
+
+class FakeReference:
+    """A solver reference's shape: no network (``model = None``), rollouts from its own state."""
+
+    label, model, trained, bidirectional = "Fake solver", None, False, False
+
+    def __init__(self, metadata):
+        self.baseline, self.pid = Ballistic(metadata), set()
+
+    def forward_rollout(self, dataset, index, steps):
+        self.pid.add(os.getpid())  # kept here only if it ran here
+        position, particle_type = dataset.trajectories[index]
+        return forward_rollout(self.baseline, position, particle_type, dataset.start, steps)
+
+
+def test_forward_rollouts_in_two_processes_give_the_same_results():
+    metadata = make_metadata(frames=40)
+    trajectories = [linear_trajectory(40, speed) for speed in (0.0, 0.005, 0.01, 0.02)]  # the last one reaches a wall
+    dataset = Dataset("linear", "", metadata, trajectories, start=5)
+    reference = FakeReference(metadata)
+    methods = [Method("Const. velocity", ConstantVelocity(metadata), None, "baseline"),
+               Method("Ballistic + walls", Ballistic(metadata), None, "baseline"), reference]
+    task = dict(steps=30, distribution_steps=[1, 10])
+    serial, serial_examples = ForwardRollout(**task)(methods, dataset)
+    parallel, parallel_examples = ForwardRollout(**task, workers=2)(methods, dataset)
+    assert parallel == serial
+    assert reference.pid == {os.getpid()}  # the reference ran here both times
+    for label, frames in serial_examples["predicted"].items():
+        torch.testing.assert_close(parallel_examples["predicted"][label], frames, rtol=0, atol=0)
+    torch.testing.assert_close(parallel_examples["truth"], serial_examples["truth"], rtol=0, atol=0)
+    assert serial["methods"]["Ballistic + walls"]["rollout_mse"] != serial["methods"]["Const. velocity"]["rollout_mse"]
 
 
 def test_labels_follow_the_paper_and_sweeps_stay_apart():

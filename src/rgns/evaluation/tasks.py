@@ -24,8 +24,10 @@ import logging
 import math
 import multiprocessing
 import os
+import queue
 import statistics
 import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -112,6 +114,101 @@ class Divergence:
         return divergence_step(positions.cpu(), dataset.bounds, self.margin_radii * radius, speed, self.energy_factor)
 
 
+def _worker(jobs, run, counter, results) -> None:
+    """In a forked copy of the evaluating process: take the next job of ``jobs`` until none is
+    left, sending ``(index, result)`` (or ``(index, None, traceback)``), then ``None``."""
+    torch.set_num_threads(1)
+    try:
+        while (j := _take(counter, len(jobs))) is not None:
+            try:
+                results.put((j, run(jobs[j])))
+            except Exception:  # noqa: BLE001 - raised again in the parent, with this traceback
+                results.put((j, None, traceback.format_exc()))
+                return
+    finally:
+        results.put(None)
+
+
+def _take(counter, total: int) -> int | None:
+    with counter.get_lock():
+        j = counter.value
+        counter.value += 1
+    return j if j < total else None
+
+
+def in_parallel(jobs: list, run, here: list[int], workers: int, bar: tqdm | None = None) -> list:
+    """``[run(job) for job in jobs]``, computed by ``workers`` processes: this one and forked
+    copies of it (``workers - 1``). The jobs listed in ``here`` (indices) run in this process
+    only, first (what keeps state here, e.g. the solver references and their timings); the
+    others go to whichever process is free, this one included once it is done with its own.
+    Results come back pickled, so ``run`` returns plain values and tensors. Without ``fork``,
+    or with ``workers=1``, all run here in order. A job's error is raised here, with the
+    worker's traceback."""
+    done: list = [None] * len(jobs)
+    shared = [j for j in range(len(jobs)) if j not in set(here)]
+    workers = min(workers, len(shared) + 1)
+    if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        for j in range(len(jobs)):
+            done[j] = run(jobs[j])
+            if bar is not None:
+                bar.update()
+        return done
+    context = multiprocessing.get_context("fork")
+    counter, results = context.Value("i", 0), context.Queue()
+    shared_jobs = [jobs[j] for j in shared]
+    children = [context.Process(target=_worker, args=(shared_jobs, run, counter, results), daemon=True)
+                for _ in range(workers - 1)]
+    for child in children:
+        child.start()
+    running, failure = len(children), None
+
+    def receive(block: bool) -> None:
+        nonlocal running, failure
+        while running:
+            try:
+                message = results.get(block=block, timeout=5 if block else None)
+            except queue.Empty:
+                if block and not any(child.is_alive() for child in children):
+                    running = 0  # a worker died without a word (killed): "lost" below names its jobs
+                if not block or not running:
+                    return
+                continue
+            if message is None:
+                running -= 1
+            elif len(message) == 3:
+                failure = failure or f"forward rollout {shared_jobs[message[0]]} failed in a worker:\n{message[2]}"
+            else:
+                done[shared[message[0]]] = message[1]
+                if bar is not None:
+                    bar.update()
+
+    try:
+        for j in here:
+            done[j] = run(jobs[j])
+            if bar is not None:
+                bar.update()
+            receive(block=False)
+        while failure is None and (j := _take(counter, len(shared_jobs))) is not None:
+            done[shared[j]] = run(shared_jobs[j])
+            if bar is not None:
+                bar.update()
+            receive(block=False)
+        receive(block=True)
+    finally:
+        with counter.get_lock():  # after an error here, the workers take no more jobs
+            counter.value = len(shared_jobs)
+        for child in children:
+            child.join(timeout=60)
+            if child.is_alive():
+                child.kill()
+    if failure is not None:
+        raise RuntimeError(failure)
+    lost = [jobs[j] for j in range(len(jobs)) if done[j] is None]
+    if lost:
+        raise RuntimeError(f"forward rollouts {lost} got no result (a worker process died: out of memory?)")
+    return done
+
+
 class ForwardRollout:
     """Forward rollouts from frame t0 on each test trajectory.
 
@@ -123,17 +220,23 @@ class ForwardRollout:
         distribution_particles: OT and MMD on at most this many moving particles (the same random
             subset in prediction and truth).
         divergence: :class:`Divergence` settings.
+        workers: processes for the rollouts (this one included). Above 1, forked copies of this
+            process roll out the networks and baselines, one (method, trajectory) at a time, while
+            this one runs the solver references (whose state and timings stay here) and then joins
+            them; the results are the same as with 1. Where ``fork`` is unavailable, 1.
     """
 
     name = "forward"
     compares_references = True
 
     def __init__(self, steps: int | None = 300, distribution_steps=(1, 10, 100, 300), distribution_particles: int = 1000,
-                 divergence: dict | None = None, seed: int = 0):
+                 divergence: dict | None = None, seed: int = 0, workers: int = 1):
         if steps is not None and steps < 1:
             raise ValueError(f"task.forward.steps={steps}: roll out at least 1 step (null: to the end of each trajectory)")
+        if workers < 1:
+            raise ValueError(f"workers={workers}: at least 1 process (this one)")
         self.steps, self.distribution_steps = steps, sorted(set(distribution_steps))
-        self.distribution_particles, self.seed = distribution_particles, seed
+        self.distribution_particles, self.seed, self.workers = distribution_particles, seed, workers
         self.divergence = Divergence(**(divergence or {}))
 
     def lengths(self, dataset: Dataset) -> list[int]:
@@ -147,20 +250,27 @@ class ForwardRollout:
         scale = float(dataset.metadata["default_connectivity_radius"])
         results, examples = {}, {"start": dataset.start, "truth": None, "predicted": {},
                               "particle_type": dataset.trajectories[0][1].cpu()}
-        bar = progress(len(methods) * len(lengths), f"forward rollouts ({dataset.name})")
-        for method in methods:
-            bar.set_postfix_str(method.label)
-            per_trajectory = []
-            for i, ((position, particle_type), steps) in enumerate(zip(dataset.trajectories, lengths)):
-                start = dataset.start
-                predicted = method.forward_rollout(dataset, i, steps)
-                truth = position[start + 1 : start + 1 + steps]
-                per_trajectory.append(self._metrics(predicted, truth, particle_type, dataset, position, scale))
-                if i == 0:
-                    examples["truth"], examples["predicted"][method.label] = truth.cpu(), predicted.cpu()
-                bar.update()
-            results[method.label] = self._aggregate(per_trajectory)
+        jobs = [(m, i) for m in range(len(methods)) for i in range(len(lengths))]
+
+        def run(job: tuple[int, int]) -> tuple[dict, np.ndarray | None]:
+            # one rollout and its metrics; the frames too for the first trajectory (the animations), as an
+            # array: a tensor from a worker would come back through shared memory that dies with the worker
+            method, i = methods[job[0]], job[1]
+            position, particle_type = dataset.trajectories[i]
+            predicted = method.forward_rollout(dataset, i, lengths[i])
+            truth = position[dataset.start + 1 : dataset.start + 1 + lengths[i]]
+            return (self._metrics(predicted, truth, particle_type, dataset, position, scale),
+                    predicted.cpu().numpy() if i == 0 else None)
+
+        bar = progress(len(jobs), f"forward rollouts ({dataset.name})")
+        here = [j for j, (m, _) in enumerate(jobs) if methods[m].model is None]  # solver references: their state is here
+        done = in_parallel(jobs, run, here, self.workers, bar)
         bar.close()
+        for m, method in enumerate(methods):
+            per_trajectory = [done[j][0] for j, job in enumerate(jobs) if job[0] == m]
+            results[method.label] = self._aggregate(per_trajectory)
+            examples["predicted"][method.label] = torch.from_numpy(done[jobs.index((m, 0))][1])
+        examples["truth"] = dataset.trajectories[0][0][dataset.start + 1 : dataset.start + 1 + lengths[0]].cpu()
         settings = dict(start=dataset.start, steps=max(lengths), steps_per_trajectory=lengths,
                         trajectories=len(lengths), particles=int(dataset.trajectories[0][0].shape[1]),
                         distribution_particles=self.distribution_particles, mmd_scale=scale,
