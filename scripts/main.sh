@@ -5,8 +5,8 @@
 # solver at coarser grids, its predictability floor, ballistic motion with walls, constant
 # velocity) and write the report.
 #
-# Two training processes run side by side, one thread each (a 2-core machine): R-GNS on one, GNS
-# then Sep-GNS on the other, each with a step budget that fits its share of the time (capped by
+# Two training processes run side by side, one thread each (a 2-core machine): R-GNS then Sep-GNS
+# on one, GNS on the other, each with a step budget that fits its share of the time (capped by
 # trainer.max_time as well). Every phase's wall time goes to <out>/timing.md.
 # Usage: bash scripts/main.sh [extra train.py overrides for every model, e.g. seed=1]
 set -euo pipefail
@@ -35,20 +35,21 @@ train() {
   .venv/bin/python train.py experiment=main model="$model" trainer.max_steps="$steps" trainer.max_time="$cap" \
     trainer.enable_progress_bar=false hydra.run.dir="$out/train/$model" "$@" > "$out/train/$model.log" 2>&1
 }
-echo "== 2/3 training -> $out/train (R-GNS | GNS, then Sep-GNS; logs: $out/train/<model>.log)"
+echo "== 2/3 training -> $out/train (R-GNS, then Sep-GNS | GNS; logs: $out/train/<model>.log)"
 # sizes and recipes per model: docs/main_job.md (equal message-passing steps: R-GNS's 2 blocks hold
 # 4 couplings, GNS has 4 interaction layers; pushforward helped GNS, R-GNS needs the time for steps)
-# (the step budgets end well within the caps on a 2-core machine, so a run's result is its seed's;
-# each is a multiple of the validation interval, 2,500: the evaluated checkpoint is chosen at validations)
-# (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU,
-# and compiled (module.compile): 1.2x its steps/s in this job after about 2 min of compilation; GNS and
-# Sep-GNS stay eager, their shorter runs do not repay compiling; docs/main_job.md)
-# (budgets for a 2-core machine that trains GNS 32x4 at about 20 steps/s per process, as measured on
-# 2026-12-02; on a faster machine every run ends on its steps before its cap)
-train rgns 12500 00:00:12:00 model.memory_saving=false module.compile=true "$@" &
-first=$!
-( train gns 7500 00:00:08:30 model.layers=4 recipe=pushforward "$@" \
+# (the step budgets end within the caps on a 2-core machine, so a run's result is its seed's; each
+# is a multiple of the validation interval, 2,500: the evaluated checkpoint is chosen at validations)
+# (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU;
+# R-GNS and GNS compiled (module.compile): 1.4-2x their eager steps/s in this job after 1-2 min of
+# compilation; Sep-GNS's short run stays eager; docs/main_job.md)
+# (GNS has a core to itself: 20,000 steps, where 7,500 left it 1.25x the 0.1x bar; R-GNS's best
+# checkpoint is often an early one, so it shares its core with Sep-GNS; caps sized for a 2-core
+# machine that trains GNS 32x4 eager at about 20 steps/s per process; docs/main_job.md)
+( train rgns 12500 00:00:11:00 model.memory_saving=false module.compile=true "$@" \
   && train sep_gns 5000 00:00:04:00 model.layers=4 recipe=pushforward "$@" ) &
+first=$!
+train gns 20000 00:00:15:00 model.layers=4 recipe=pushforward module.compile=true "$@" &
 second=$!
 status=0
 wait $first || status=$?
