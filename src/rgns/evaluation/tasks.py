@@ -141,9 +141,10 @@ def in_parallel(jobs: list, run, here: list[int], workers: int, bar: tqdm | None
     copies of it (``workers - 1``). The jobs listed in ``here`` (indices) run in this process
     only, first (what keeps state here, e.g. the solver references and their timings); the
     others go to whichever process is free, this one included once it is done with its own.
-    Results come back pickled, so ``run`` returns plain values and tensors. Without ``fork``,
-    or with ``workers=1``, all run here in order. A job's error is raised here, with the
-    worker's traceback."""
+    Results come back pickled, so ``run`` returns plain values and arrays (a tensor would come
+    back through shared memory that dies with its worker), never ``None``. Without ``fork``, or
+    with ``workers=1``, all run here in order. A job's error is raised here, with the worker's
+    traceback, once the workers have finished the jobs they hold."""
     done: list = [None] * len(jobs)
     shared = [j for j in range(len(jobs)) if j not in set(here)]
     workers = min(workers, len(shared) + 1)
@@ -162,6 +163,10 @@ def in_parallel(jobs: list, run, here: list[int], workers: int, bar: tqdm | None
         child.start()
     running, failure = len(children), None
 
+    def stop() -> None:  # no more jobs for anyone
+        with counter.get_lock():
+            counter.value = len(shared_jobs)
+
     def receive(block: bool) -> None:
         nonlocal running, failure
         while running:
@@ -177,6 +182,7 @@ def in_parallel(jobs: list, run, here: list[int], workers: int, bar: tqdm | None
                 running -= 1
             elif len(message) == 3:
                 failure = failure or f"forward rollout {shared_jobs[message[0]]} failed in a worker:\n{message[2]}"
+                stop()
             else:
                 done[shared[message[0]]] = message[1]
                 if bar is not None:
@@ -194,11 +200,14 @@ def in_parallel(jobs: list, run, here: list[int], workers: int, bar: tqdm | None
                 bar.update()
             receive(block=False)
         receive(block=True)
+        clean = True
+    except BaseException:
+        clean = False
+        raise
     finally:
-        with counter.get_lock():  # after an error here, the workers take no more jobs
-            counter.value = len(shared_jobs)
-        for child in children:
-            child.join(timeout=60)
+        stop()  # after an error here, the workers take no more jobs
+        for child in children:  # after one, a worker may wait on a full pipe that nobody reads
+            child.join(timeout=60 if clean else 1)
             if child.is_alive():
                 child.kill()
     if failure is not None:
