@@ -389,3 +389,17 @@ def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_pa
     assert group["rollout_mse"]["std"] == pytest.approx(np.std(values, ddof=1))
     report = (tmp_path / "out" / "report.md").read_text()
     assert "### Over seeds on" in report and "(3 seeds)" in report and "Farthest outside the box" in report
+
+
+def test_the_evaluation_benchmark_compares_one_process_with_two(trained, capsys):
+    """`python -m rgns.bench evaluation` times the same rollouts with 1 and 2 processes and
+    checks that they agree."""
+    from rgns.bench.evaluation import main as bench
+
+    checkpoints = sorted(str(p) for p in (trained / "sweep").rglob("checkpoints/last.ckpt"))
+    bench(["--checkpoints", *checkpoints, "--data-root", str(trained / "data"), "--trajectories", "2",
+           "--steps", "5", "--no-references"])
+    printed = capsys.readouterr().out
+    assert "4 methods" in printed  # 2 checkpoints and 2 baselines (the tiny models have no hard walls: no twins)
+    assert re.search(r"workers=1: [\d.]+ s", printed) and re.search(r"workers=2: [\d.]+ s", printed)
+    assert "the same results: True" in printed
