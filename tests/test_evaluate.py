@@ -8,6 +8,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -68,9 +69,7 @@ def test_forward_task_reports_where_a_rollout_leaves_the_box():
     assert inverse["methods"]["Const. velocity"]["horizons"][5]["inverse_mse"] == pytest.approx(0.0, abs=1e-10)
 
 
-
 def pid_after(job: int) -> tuple[int, int]:
-    import time
     time.sleep(0.05)  # long enough that a forked worker gets some of the jobs
     return job * job, os.getpid()
 
