@@ -58,9 +58,3 @@ def main(argv: list[str]) -> None:
           f"of workers=1 ({seconds[1] / seconds[args.workers]:.2f}x as fast)")
     if not same:
         raise SystemExit("the results differ between workers=1 and workers=" + str(args.workers))
-
-
-if __name__ == "__main__":
-    import sys
-
-    main(sys.argv[1:])

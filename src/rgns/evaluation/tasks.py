@@ -146,13 +146,17 @@ def in_parallel(jobs: list, run, here: list[int], workers: int, bar: tqdm | None
     with ``workers=1``, all run here in order. A job's error is raised here, with the worker's
     traceback, once the workers have finished the jobs they hold."""
     done: list = [None] * len(jobs)
+
+    def record(j: int, result) -> None:
+        done[j] = result
+        if bar is not None:
+            bar.update()
+
     shared = [j for j in range(len(jobs)) if j not in set(here)]
     workers = min(workers, len(shared) + 1)
     if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
         for j in range(len(jobs)):
-            done[j] = run(jobs[j])
-            if bar is not None:
-                bar.update()
+            record(j, run(jobs[j]))
         return done
     context = multiprocessing.get_context("fork")
     counter, results = context.Value("i", 0), context.Queue()
@@ -184,20 +188,14 @@ def in_parallel(jobs: list, run, here: list[int], workers: int, bar: tqdm | None
                 failure = failure or f"forward rollout {shared_jobs[message[0]]} failed in a worker:\n{message[2]}"
                 stop()
             else:
-                done[shared[message[0]]] = message[1]
-                if bar is not None:
-                    bar.update()
+                record(shared[message[0]], message[1])
 
     try:
         for j in here:
-            done[j] = run(jobs[j])
-            if bar is not None:
-                bar.update()
+            record(j, run(jobs[j]))
             receive(block=False)
         while failure is None and (j := _take(counter, len(shared_jobs))) is not None:
-            done[shared[j]] = run(shared_jobs[j])
-            if bar is not None:
-                bar.update()
+            record(shared[j], run(shared_jobs[j]))
             receive(block=False)
         receive(block=True)
         clean = True
