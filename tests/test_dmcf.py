@@ -193,6 +193,29 @@ def test_next_velocity_is_advection_under_gravity_plus_the_correction():
     torch.testing.assert_close(model.next_velocity(*args), velocity, rtol=0, atol=0)  # ballistic
 
 
+def test_ablations_read_the_scene_at_the_current_positions_and_drop_the_momentum_balance():
+    """advect=False reads the scene at x^t (same inputs v*); antisymmetric=False ends in an
+    ordinary continuous convolution, whose corrections no longer sum to zero."""
+    torch.manual_seed(0)
+    state = scene()
+    args = (state.position, state.velocity_history, state.particle_type, None)
+    velocity = state.velocity_history[:, -1]
+    still = DMCF(metadata(), **SMALL, advect=False)
+    randomise(still)
+    velocity = velocity + still.gravity
+    correction, _ = still.correction(state.position, velocity, state.particle_type)
+    torch.testing.assert_close(still.next_velocity(*args), velocity + correction)
+    moved, _ = still.correction(state.position + velocity, velocity, state.particle_type)
+    assert not torch.allclose(moved, correction)  # where the scene is read matters
+    plain = DMCF(metadata(), **SMALL, antisymmetric=False).double()
+    randomise(plain)
+    assert not hasattr(plain.decoder, "half_kernel")
+    fluid, walls = plain.correction(state.position.double() + velocity.double(), velocity.double(),
+                                    state.particle_type)
+    total = fluid.sum(0) + walls.sum(0)
+    assert total.abs().max() > 1e-3 * (fluid.abs().sum() + walls.abs().sum())
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_walls_are_sampled_on_the_faces_near_the_particles(dim):
     model = DMCF(metadata(dim), wall_spacing=0.05, **SMALL)

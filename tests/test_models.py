@@ -7,7 +7,7 @@ import torch
 from torch_geometric.data import Batch, Data
 
 from rgns.data.contract import KINEMATIC, WATER
-from rgns.data.graph import radius_graph
+from rgns.data.graph import edge_channels, edge_features, radius_graph
 from rgns.models import GNS, RGNS, SepGNS, State, count_parameters
 
 torch.set_num_threads(1)
@@ -57,11 +57,12 @@ def training_batch(dim: int = 2, graphs: int = 2, seed: int = 0) -> Batch:
 
 # ---- the contract with training ---------------------------------------------------------------
 
-@pytest.mark.parametrize("cls", [GNS, RGNS, SepGNS])
+@pytest.mark.parametrize("cls,options", [(GNS, {}), (RGNS, {}), (SepGNS, {}), (GNS, dict(edge_velocity=True)),
+                                         (RGNS, dict(edge_velocity=True))])
 @pytest.mark.parametrize("dim", [2, 3])
-def test_contract_on_a_training_batch(cls, dim):
+def test_contract_on_a_training_batch(cls, options, dim):
     torch.manual_seed(0)
-    model = cls(metadata(dim), history=K, **SMALL)
+    model = cls(metadata(dim), history=K, **SMALL, **options)
     perturb(model)
     assert model.history == K and model.radius == 0.1 and model.acc_std_noisy.shape == (dim,)
     assert cls.bidirectional == (cls is not GNS)
@@ -211,6 +212,49 @@ def test_inverse_step_recovers_position_and_known_history_exactly(dim, encoder, 
     back = model.inverse_step(model.step(state))
     torch.testing.assert_close(back.position, state.position, rtol=0, atol=1e-6)  # p^t = p^{t+1} - v^{t+1}
     assert torch.equal(back.velocity_history[:, 1:], state.velocity_history[:, 1:])  # the masked slots
+
+
+def test_edge_features_read_the_relative_velocity_and_how_fast_a_pair_closes_in():
+    position = torch.tensor([[0.0, 0.0], [0.05, 0.0], [0.0, 0.08]])
+    velocity = torch.tensor([[1.0, 0.0], [-1.0, 0.0], [1.0, 3.0]]) * 1e-3  # 0 and 1 approach, 2 rises away from 0
+    edge_index = torch.tensor([[1, 0, 2], [0, 1, 0]])  # senders, receivers
+    assert edge_features(position, edge_index, 0.1).shape == (3, edge_channels(2))
+    features = edge_features(position, edge_index, 0.1, velocity, torch.tensor([1e-3, 2e-3]))  # [E, 2D + 2]
+    assert features.shape == (3, edge_channels(2, velocity=True)) == (3, 6)
+    torch.testing.assert_close(features[:, :3], edge_features(position, edge_index, 0.1))  # geometry as before
+    torch.testing.assert_close(features[:, 2:5], torch.tensor([[0.5, -2.0, 0.0], [0.5, 2.0, 0.0], [0.8, 0.0, 1.5]]))
+    # along the edge: negative when the pair closes in (either direction of the edge), positive when it separates
+    torch.testing.assert_close(features[:, 5], torch.tensor([-2.0, -2.0, 1.5]))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("known_gravity", [False, True])
+def test_rgns_edge_velocity_conditions_are_the_same_in_both_directions(dim, known_gravity, monkeypatch):
+    """With edge_velocity, a step and its inverse read v^t (the newest slot of V^t, the second
+    newest of V^{t+1}) and so build the same conditions; the inverse stays exact where it is."""
+    torch.manual_seed(dim)
+    model = RGNS(gravity_metadata(dim), latent=16, layers=4, basis="differences", known_gravity=known_gravity,
+                 edge_velocity=True)
+    perturb(model, seed=dim)
+    seen = []
+    conditions = model.conditions
+    monkeypatch.setattr(model, "conditions", lambda *args: seen.append(conditions(*args)) or seen[-1])
+    state = random_state(dim=dim, seed=dim)
+    back = model.inverse_step(model.step(state))
+    (forward_edges, forward_nodes), (inverse_edges, inverse_nodes) = seen
+    # equal up to float32 rounding: the inverse recomputes p^t as p^{t+1} - v^{t+1}
+    torch.testing.assert_close(inverse_edges, forward_edges, rtol=0, atol=1e-4)
+    torch.testing.assert_close(inverse_nodes, forward_nodes, rtol=0, atol=1e-4)
+    torch.testing.assert_close(back.position, state.position, rtol=0, atol=1e-6)
+    assert torch.equal(back.velocity_history[:, 1:], state.velocity_history[:, 1:])
+    # the velocities are read: another v^t gives other conditions and another next velocity
+    edge_index = radius_graph(state.position, model.radius)
+    moved = state.velocity_history.clone()
+    moved[:, -1] += 1e-3 * torch.randn_like(moved[:, -1])
+    assert not torch.equal(model.conditions(state.position, state.particle_type, edge_index, moved[:, -1])[0],
+                           forward_edges)
+    with pytest.raises(ValueError, match="history >= 2"):
+        RGNS(gravity_metadata(dim), history=1, latent=16, layers=2, edge_velocity=True)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

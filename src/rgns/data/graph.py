@@ -40,15 +40,29 @@ def batched_radius_graph(position: torch.Tensor, radius: float, batch: torch.Ten
     return torch.cat(parts, dim=1).to(position.device)
 
 
-def edge_features(position: torch.Tensor, edge_index: torch.Tensor, radius: float) -> torch.Tensor:
-    """Relative displacement of sender to receiver over R, and its norm.
+def edge_features(position: torch.Tensor, edge_index: torch.Tensor, radius: float,
+                  velocity: torch.Tensor | None = None, velocity_scale: torch.Tensor | float = 1.0) -> torch.Tensor:
+    """Relative displacement of sender to receiver over R, and its norm; with ``velocity``, also
+    the relative velocity ``(v_j - v_i) / velocity_scale`` and its component along the
+    displacement (positive: the pair separates, negative: it closes in).
 
     Shapes:
-        position: ``[N, D]``, edge_index: ``[2, E]``  ->  ``[E, D + 1]``
+        position: ``[N, D]``, edge_index: ``[2, E]``, velocity: ``[N, D]`` or None,
+        velocity_scale: ``[D]`` or scalar  ->  ``[E, D + 1]`` (``[E, 2 D + 2]`` with velocity)
     """
     sender, receiver = edge_index
     displacement = (position[sender] - position[receiver]) / radius  # [E, D]
-    return torch.cat([displacement, displacement.norm(dim=-1, keepdim=True)], dim=-1)
+    distance = displacement.norm(dim=-1, keepdim=True)  # [E, 1]
+    if velocity is None:
+        return torch.cat([displacement, distance], dim=-1)
+    relative = (velocity[sender] - velocity[receiver]) / velocity_scale  # [E, D]
+    closing = (relative * displacement).sum(-1, keepdim=True) / distance.clamp_min(1e-6)  # [E, 1]
+    return torch.cat([displacement, distance, relative, closing], dim=-1)
+
+
+def edge_channels(dim: int, velocity: bool = False) -> int:
+    """Width of :func:`edge_features` in ``dim`` dimensions, with or without the velocity terms."""
+    return 2 * dim + 2 if velocity else dim + 1
 
 
 def wall_distance(position: torch.Tensor, bounds: torch.Tensor, radius: float) -> torch.Tensor:

@@ -139,6 +139,8 @@ def describe(model_config: dict) -> str:
     usual_basis = "differences" if issubclass(cls, RGNS) else "velocity"  # as conf/model/ sets it
     if model_config.get("basis", usual_basis) != usual_basis:
         label += f" {model_config['basis']} basis"
+    if model_config.get("edge_velocity"):
+        label += " edge velocity"
     return label
 
 

@@ -101,6 +101,11 @@ class DMCF(Simulator):
             (default: :obj:`None`)
         embedding (int, optional): width of a particle-type embedding appended to the fluid
             features (multi-material data); 0: none, DMCF's inputs. (default: :obj:`0`)
+        advect (bool, optional): read the scene at the advected positions ``x*`` (DMCF's);
+            ``False`` (ablation): at ``x^t``, with the same inputs ``v*``. (default: :obj:`True`)
+        antisymmetric (bool, optional): end in the antisymmetric convolution (DMCF's, momentum
+            conserved); ``False`` (ablation): an ordinary continuous convolution, whose corrections
+            need not sum to zero. (default: :obj:`True`)
     """
 
     display_name = "DMCF"
@@ -108,7 +113,7 @@ class DMCF(Simulator):
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 96,
                  layers: int = 4, kernel_size: int = 8, radius_factor: float = 4 / 3,
                  wall_spacing: float | None = None, gravity: list | None = None, embedding: int = 0,
-                 hard_walls: bool = False):
+                 hard_walls: bool = False, advect: bool = True, antisymmetric: bool = True):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         if not embedding:
             self.type_embedding = None  # DMCF's fluid features carry no type
@@ -135,7 +140,11 @@ class DMCF(Simulator):
         self.boundary_dense = nn.Linear(boundary_in, width)
         widths = [3 * width] + [latent] * layers
         self.processor = nn.ModuleList(ContinuousConv(a, b, dim, kernel_size) for a, b in zip(widths, widths[1:]))
-        self.decoder = AntisymmetricConv(widths[-1], dim, dim, kernel_size)
+        self.advect, self.antisymmetric = bool(advect), bool(antisymmetric)
+        if self.antisymmetric:
+            self.decoder = AntisymmetricConv(widths[-1], dim, dim, kernel_size)
+        else:
+            self.decoder = ContinuousConv(widths[-1], dim, dim, kernel_size)
 
     # ---- the scene: particles at x* and the walls near them ------------------------------------
 
@@ -187,7 +196,8 @@ class DMCF(Simulator):
         return h
 
     def decode(self, h: Tensor, neighbourhood: Neighbourhood) -> Tensor:
-        """The correction Δx ``[N, D]`` in position units: its sum over the particles is zero."""
+        """The correction Δx ``[N, D]`` in position units: its sum over the particles is zero
+        (with ``antisymmetric``)."""
         return self.decoder(F.relu(h), neighbourhood) * self.acc_std_noisy  # one scale per axis keeps the sum zero
 
     def correction(self, advected: Tensor, velocity: Tensor, particle_type: Tensor,
@@ -221,7 +231,7 @@ class DMCF(Simulator):
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
         velocity = velocity_history[:, -1] + self.gravity  # v*, dt = 1
         advected = position + velocity  # x*
-        correction, _ = self.correction(advected, velocity, particle_type, batch)
+        correction, _ = self.correction(advected if self.advect else position, velocity, particle_type, batch)
         return velocity + correction  # (x* + Δx) - x^t
 
     def extra_repr(self) -> str:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from rgns.data.graph import edge_features
+from rgns.data.graph import edge_channels, edge_features
 from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn import InteractionNetwork, mlp
 
@@ -32,23 +32,29 @@ class GNS(Simulator):
             (:func:`~rgns.models.base.dataset_gravity`), normalised, instead of the acceleration
             beyond the dataset's mean: a particle the network leaves alone falls freely.
             (default: :obj:`False`)
+        edge_velocity (bool, optional): the edge encoder also reads the relative newest velocity
+            ``(v_j - v_i)`` over the velocity std and its component along the edge
+            (:func:`~rgns.data.graph.edge_features`), not only the displacement: how fast a pair
+            closes in, which the processor otherwise has to work out from two node latents.
+            (default: :obj:`False`)
     """
 
     display_name = "GNS"
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False,
-                 basis: str = "velocity", known_gravity: bool = False):
+                 basis: str = "velocity", known_gravity: bool = False, edge_velocity: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         if basis not in ("velocity", "differences"):
             raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
         self.basis = basis
         self.known_gravity = bool(known_gravity)
+        self.edge_velocity = bool(edge_velocity)
         if self.known_gravity:  # what a zero output of the decoder stands for (computed, not saved in checkpoints)
             self.register_buffer("gravity_reference", dataset_gravity(metadata), persistent=False)  # [D]
         node_in = history * self.dim + self.condition_channels
         self.node_encoder = mlp(node_in, latent, latent, hidden_layers)
-        self.edge_encoder = mlp(self.dim + 1, latent, latent, hidden_layers)
+        self.edge_encoder = mlp(edge_channels(self.dim, self.edge_velocity), latent, latent, hidden_layers)
         self.processor = nn.ModuleList(InteractionNetwork(latent, hidden_layers) for _ in range(layers))
         self.decoder = mlp(latent, latent, self.dim, hidden_layers, layer_norm=False)
 
@@ -59,7 +65,8 @@ class GNS(Simulator):
         else:
             velocities = self.to_differences(velocity_history, anchor=self.history - 1).flatten(1)  # [N, k D]
         nodes = torch.cat([velocities, self.node_conditions(position, particle_type)], dim=-1)
-        edges = edge_features(position, edge_index, self.radius)  # [E, D + 1]
+        newest = velocity_history[:, -1] if self.edge_velocity else None  # v^t
+        edges = edge_features(position, edge_index, self.radius, newest, self.vel_std_noisy)  # [E, D + 1 (+ D + 1)]
         return self.node_encoder(nodes), self.edge_encoder(edges)  # [N, C], [E, C]
 
     def process(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:

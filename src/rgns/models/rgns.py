@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from rgns.data.graph import edge_features
+from rgns.data.graph import edge_channels, edge_features
 from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn import ILP, RRMP, MLPEncoderDecoder, mlp
 
@@ -45,6 +45,12 @@ class RGNS(Simulator):
             ``V^t = decode(RRMP^{-1}(encode(V^{t+1} - g)))``, still exact inverses of each other.
             The identity latent map is then ballistic motion in both directions of time instead
             of constant velocity. (default: :obj:`False`)
+        edge_velocity (bool, optional): the edge conditions also read the relative velocity
+            ``v^t_j - v^t_i`` over the velocity std and its component along the edge
+            (:func:`~rgns.data.graph.edge_features`). ``v^t`` is known in both directions of the
+            step t <-> t+1 (the newest slot of ``V^t``, the second newest of ``V^{t+1}``), so the
+            conditions stay shared and the inverse exact. Needs ``history >= 2``.
+            (default: :obj:`False`)
     """
 
     display_name = "R-GNS"
@@ -53,8 +59,12 @@ class RGNS(Simulator):
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
                  edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, node_norm: bool = True,
-                 embedding: int = 16, hard_walls: bool = False, basis: str = "velocity", known_gravity: bool = False):
+                 embedding: int = 16, hard_walls: bool = False, basis: str = "velocity", known_gravity: bool = False,
+                 edge_velocity: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        if edge_velocity and history < 2:
+            raise ValueError("edge_velocity needs history >= 2: v^t must be in both directions' histories")
+        self.edge_velocity = bool(edge_velocity)
         if basis not in ("velocity", "differences"):
             raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
         self.basis = basis
@@ -69,7 +79,7 @@ class RGNS(Simulator):
         else:
             raise ValueError(f"encoder must be 'ilp' or 'mlp', got {encoder!r}")
         # edge latent: geometry of the edge and the conditions of both ends, encoded once per step
-        self.edge_encoder = mlp(self.dim + 1 + 2 * self.condition_channels, latent, latent, hidden_layers)
+        self.edge_encoder = mlp(edge_channels(self.dim, self.edge_velocity) + 2 * self.condition_channels, latent, latent, hidden_layers)
         self.processor = RRMP(latent, layers, self.condition_channels, hidden, hidden_layers, edges,
                               memory_saving, zero_init, node_norm)
 
@@ -82,12 +92,15 @@ class RGNS(Simulator):
                              "(at the main job's size plain autograd is also the faster one on a CPU)")
         super().compile_network(**options)
 
-    def conditions(self, position: Tensor, particle_type: Tensor, edge_index: Tensor) -> tuple[Tensor, Tensor]:
-        """The fixed conditions of a step: edge latents ``[E, C]`` and node conditions ``[N, 2D + embedding]``."""
+    def conditions(self, position: Tensor, particle_type: Tensor, edge_index: Tensor,
+                   velocity: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """The fixed conditions of a step: edge latents ``[E, C]`` and node conditions ``[N, 2D + embedding]``.
+        ``velocity [N, D]``: ``v^t``, read with ``edge_velocity``."""
         condition = self.node_conditions(position, particle_type)  # [N, 2D + embedding]
         sender, receiver = edge_index
-        edges = torch.cat([edge_features(position, edge_index, self.radius), condition[receiver], condition[sender]],
-                          dim=-1)  # [E, D + 1 + 2 (2D + embedding)]
+        geometry = edge_features(position, edge_index, self.radius, velocity if self.edge_velocity else None,
+                                 self.vel_std_noisy)  # [E, D + 1 (+ D + 1)]
+        edges = torch.cat([geometry, condition[receiver], condition[sender]], dim=-1)
         return self.edge_encoder(edges), condition
 
     def to_basis(self, velocity_history: Tensor) -> Tensor:
@@ -120,14 +133,14 @@ class RGNS(Simulator):
     def forward_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                         edge_index: Tensor) -> Tensor:
         """The unmasked forward output: ``V^t [N, k, D] -> decode(RRMP(encode(V^t))) (+ g) [N, k, D]``."""
-        edge_attr, condition = self.conditions(position, particle_type, edge_index)
+        edge_attr, condition = self.conditions(position, particle_type, edge_index, velocity_history[:, -1])  # v^t
         latent = self.processor(self.encode(velocity_history), edge_index, edge_attr, condition)
         return self.decode(latent) + self.gravity_shift
 
     def inverse_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                         edge_index: Tensor) -> Tensor:
         """The unmasked inverse output: ``V^{t+1} [N, k, D] -> decode(RRMP^{-1}(encode(V^{t+1} (- g)))) [N, k, D]``."""
-        edge_attr, condition = self.conditions(position, particle_type, edge_index)
+        edge_attr, condition = self.conditions(position, particle_type, edge_index, velocity_history[:, -2])  # v^t
         latent = self.processor.inverse(self.encode(velocity_history - self.gravity_shift), edge_index, edge_attr,
                                         condition)
         return self.decode(latent)
@@ -135,8 +148,9 @@ class RGNS(Simulator):
     def both_velocities(self, position: Tensor, forward_history: Tensor, inverse_history: Tensor,
                         particle_type: Tensor, edge_index: Tensor, batch: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Both directions of a training step on one graph, sharing the conditions (the edge
-        encoder runs once for the two)."""
-        edge_attr, condition = self.conditions(position, particle_type, edge_index)
+        encoder runs once for the two; ``v^t`` is ``forward_history``'s newest slot and
+        ``inverse_history``'s second newest)."""
+        edge_attr, condition = self.conditions(position, particle_type, edge_index, forward_history[:, -1])
         forward = self.processor(self.encode(forward_history), edge_index, edge_attr, condition)
         inverse = self.processor.inverse(self.encode(inverse_history - self.gravity_shift), edge_index, edge_attr,
                                          condition)
