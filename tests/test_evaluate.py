@@ -142,6 +142,8 @@ def test_labels_follow_the_paper_and_sweeps_stay_apart():
     assert describe({"_target_": "rgns.models.GNS", "latent": 32, "layers": 4, "basis": "velocity"}) == "GNS 32x4"
     assert describe({"_target_": "rgns.models.GNS", "latent": 32, "layers": 4, "edge_velocity": True}) == \
         "GNS 32x4 edge velocity"
+    assert describe({"_target_": "rgns.models.SepGNS", "latent": 32, "layers": 4, "decoder": "pairwise"}) == \
+        "Sep-GNS 32x4 pairwise decoder"
     assert describe({"_target_": "rgns.models.RGNS", "latent": 32, "layers": 2, "basis": "differences"}) == "R-GNS 32x2"
     assert describe({"_target_": "rgns.models.RGNS", "latent": 32, "layers": 2, "basis": "velocity"}) == \
         "R-GNS 32x2 velocity basis"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from rgns.data.graph import edge_channels, edge_features
+from rgns.data.graph import edge_channels, edge_features, wall_distance
 from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn import InteractionNetwork, mlp
 
@@ -37,17 +37,27 @@ class GNS(Simulator):
             (:func:`~rgns.data.graph.edge_features`), not only the displacement: how fast a pair
             closes in, which the processor otherwise has to work out from two node latents.
             (default: :obj:`False`)
+        decoder (str, optional): ``"node"`` (GNS's: an MLP per particle) or ``"pairwise"``: an
+            MLP ``psi`` per edge on ``[h_i, h_j, g_ij]`` (``g``: the edge features), antisymmetrised,
+            ``m_ij = psi(h_i, h_j, g_ij) - psi(h_j, h_i, g_ji)``, summed over the neighbours, plus a
+            per-particle term that only particles within R of a wall receive (weighted by
+            ``1 - distance / R``). The pair terms cancel in the sum over the particles: away from
+            the walls the network conserves momentum, as DMCF's antisymmetric convolution does.
+            (default: ``"node"``)
     """
 
     display_name = "GNS"
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False,
-                 basis: str = "velocity", known_gravity: bool = False, edge_velocity: bool = False):
+                 basis: str = "velocity", known_gravity: bool = False, edge_velocity: bool = False,
+                 decoder: str = "node"):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         if basis not in ("velocity", "differences"):
             raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
-        self.basis = basis
+        if decoder not in ("node", "pairwise"):
+            raise ValueError(f"decoder must be 'node' or 'pairwise', got {decoder!r}")
+        self.basis, self.pairwise = basis, decoder == "pairwise"
         self.known_gravity = bool(known_gravity)
         self.edge_velocity = bool(edge_velocity)
         if self.known_gravity:  # what a zero output of the decoder stands for (computed, not saved in checkpoints)
@@ -56,7 +66,18 @@ class GNS(Simulator):
         self.node_encoder = mlp(node_in, latent, latent, hidden_layers)
         self.edge_encoder = mlp(edge_channels(self.dim, self.edge_velocity), latent, latent, hidden_layers)
         self.processor = nn.ModuleList(InteractionNetwork(latent, hidden_layers) for _ in range(layers))
-        self.decoder = mlp(latent, latent, self.dim, hidden_layers, layer_norm=False)
+        if self.pairwise:
+            edge_in = 2 * latent + edge_channels(self.dim, self.edge_velocity)
+            self.decoder = mlp(edge_in, latent, self.dim, hidden_layers, layer_norm=False)  # psi, per edge
+            self.decoder[-1] = nn.Linear(latent, self.dim, bias=False)  # a bias would cancel in psi_ij - psi_ji
+            self.wall_decoder = mlp(latent, latent, self.dim, hidden_layers, layer_norm=False)
+        else:
+            self.decoder = mlp(latent, latent, self.dim, hidden_layers, layer_norm=False)
+
+    def geometry(self, position: Tensor, velocity_history: Tensor, edge_index: Tensor) -> Tensor:
+        """The edge features ``[E, D + 1 (+ D + 1)]`` of ``edge_index``: displacement (and relative velocity)."""
+        newest = velocity_history[:, -1] if self.edge_velocity else None  # v^t
+        return edge_features(position, edge_index, self.radius, newest, self.vel_std_noisy)
 
     def encode(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                edge_index: Tensor) -> tuple[Tensor, Tensor]:
@@ -65,8 +86,7 @@ class GNS(Simulator):
         else:
             velocities = self.to_differences(velocity_history, anchor=self.history - 1).flatten(1)  # [N, k D]
         nodes = torch.cat([velocities, self.node_conditions(position, particle_type)], dim=-1)
-        newest = velocity_history[:, -1] if self.edge_velocity else None  # v^t
-        edges = edge_features(position, edge_index, self.radius, newest, self.vel_std_noisy)  # [E, D + 1 (+ D + 1)]
+        edges = self.geometry(position, velocity_history, edge_index)  # [E, D + 1 (+ D + 1)]
         return self.node_encoder(nodes), self.edge_encoder(edges)  # [N, C], [E, C]
 
     def process(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
@@ -74,13 +94,23 @@ class GNS(Simulator):
             x, edge_attr = layer(x, edge_index, edge_attr)
         return x
 
-    def decode(self, x: Tensor) -> Tensor:
+    def decode(self, x: Tensor, position: Tensor | None = None, velocity_history: Tensor | None = None,
+               edge_index: Tensor | None = None) -> Tensor:
+        """The physical acceleration ``[N, D]``; the pairwise decoder also reads the scene."""
         reference = self.gravity_reference if self.known_gravity else self.acc_mean  # [D]
-        return self.decoder(x) * self.acc_std_noisy + reference  # [N, D], physical acceleration
+        if not self.pairwise:
+            return self.decoder(x) * self.acc_std_noisy + reference
+        sender, receiver = edge_index
+        into = self.decoder(torch.cat([x[receiver], x[sender], self.geometry(position, velocity_history, edge_index)], -1))
+        back = self.decoder(torch.cat([x[sender], x[receiver], self.geometry(position, velocity_history, edge_index.flip(0))], -1))
+        pairs = torch.zeros_like(position).index_add_(0, receiver, into - back)  # [N, D], sums to zero
+        walls = wall_distance(position, self.bounds, self.radius)  # [N, 2 D], in [-1, 1]
+        near = (1 - walls.min(dim=-1, keepdim=True).values).clamp(0, 1)  # [N, 1]: 1 at a wall, 0 from R on
+        return (pairs + near * self.wall_decoder(x)) * self.acc_std_noisy + reference
 
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
         x, edge_attr = self.encode(position, velocity_history, particle_type, edge_index)
         x = self.process(x, edge_index, edge_attr)
-        acceleration = self.decode(x)
+        acceleration = self.decode(x, position, velocity_history, edge_index)
         return velocity_history[:, -1] + acceleration  # dt = 1

@@ -26,14 +26,16 @@ class SepGNS(Simulator):
 
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False,
-                 basis: str = "velocity", known_gravity: bool = False):
+                 basis: str = "velocity", known_gravity: bool = False, edge_velocity: bool = False,
+                 decoder: str = "node"):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         del self.type_embedding  # each network owns its own
         reversed_metadata = copy.deepcopy(metadata)
         reversed_metadata["vel_mean"] = [-m for m in metadata["vel_mean"]]
         sizes = dict(history=history, noise_std=noise_std, latent=latent, layers=layers,
                      hidden_layers=hidden_layers, embedding=embedding, basis=basis,
-                     known_gravity=known_gravity)  # reversed time keeps gravity's sign (an acceleration)
+                     known_gravity=known_gravity, edge_velocity=edge_velocity,
+                     decoder=decoder)  # reversed time keeps gravity's sign (an acceleration)
         self.forward_gns = GNS(metadata, **sizes)
         self.backward_gns = GNS(reversed_metadata, **sizes)
 
