@@ -231,15 +231,17 @@ def test_edge_features_read_the_relative_velocity_and_how_fast_a_pair_closes_in(
 @pytest.mark.parametrize("edge_velocity", [False, True])
 def test_gns_pairwise_decoder_conserves_momentum_away_from_the_walls(dim, edge_velocity):
     """decoder="pairwise": antisymmetrised pair terms cancel in the sum over the particles; only
-    particles within R of a wall add a term of their own."""
-    model = GNS(metadata(dim), decoder="pairwise", edge_velocity=edge_velocity, **SMALL).double()
+    particles within R of a wall add a term of their own; the reference is gravity."""
+    model = GNS(gravity_metadata(dim), decoder="pairwise", edge_velocity=edge_velocity, **SMALL).double()
+    assert model.known_gravity and model.gravity_reference[-1] < 0
     perturb(model, seed=dim)
     state = random_state(dim=dim, seed=dim, kinematic=0)
     position, history = state.position.double(), state.velocity_history.double()
     edge_index = radius_graph(position, model.radius)
     inside = ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)  # farther than R from every wall
     acceleration = model.next_velocity(position, history, state.particle_type, edge_index) - history[:, -1]
-    excess = (acceleration - model.acc_mean.double()) / model.acc_std_noisy.double()  # [N, D]
+    gravity = model.gravity_reference.double()
+    excess = (acceleration - gravity) / model.acc_std_noisy.double()  # [N, D]
     assert excess.abs().mean() > 1e-3
     # away from the walls only pair terms: their sum over the particles is zero
     core = inside.nonzero().squeeze(-1)
@@ -247,7 +249,7 @@ def test_gns_pairwise_decoder_conserves_momentum_away_from_the_walls(dim, edge_v
     relabel = torch.full((len(position),), -1, dtype=torch.long)
     relabel[core] = torch.arange(len(core))
     inner = model.next_velocity(position[core], history[core], state.particle_type[core], relabel[edge_index[:, keep]])
-    total = ((inner - history[core, -1] - model.acc_mean.double()) / model.acc_std_noisy.double()).sum(0)
+    total = ((inner - history[core, -1] - gravity) / model.acc_std_noisy.double()).sum(0)
     assert total.abs().max() < 1e-10 * excess.abs().sum()
     # with particles at the walls the sum is no longer zero: the walls take the reaction
     assert excess.sum(0).abs().max() > 1e-6 * excess.abs().sum()

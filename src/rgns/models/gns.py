@@ -43,7 +43,9 @@ class GNS(Simulator):
             per-particle term that only particles within R of a wall receive (weighted by
             ``1 - distance / R``). The pair terms cancel in the sum over the particles: away from
             the walls the network conserves momentum, as DMCF's antisymmetric convolution does.
-            (default: ``"node"``)
+            Its reference is gravity (``known_gravity`` implied): with pair terms that cancel, the
+            dataset's mean acceleration (gravity less the floor's support, averaged) would leave
+            every falling body falling too slowly. (default: ``"node"``)
     """
 
     display_name = "GNS"
@@ -58,6 +60,7 @@ class GNS(Simulator):
         if decoder not in ("node", "pairwise"):
             raise ValueError(f"decoder must be 'node' or 'pairwise', got {decoder!r}")
         self.basis, self.pairwise = basis, decoder == "pairwise"
+        known_gravity = known_gravity or self.pairwise
         self.known_gravity = bool(known_gravity)
         self.edge_velocity = bool(edge_velocity)
         if self.known_gravity:  # what a zero output of the decoder stands for (computed, not saved in checkpoints)
