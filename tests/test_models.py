@@ -7,7 +7,7 @@ import torch
 from torch_geometric.data import Batch, Data
 
 from rgns.data.contract import KINEMATIC, WATER
-from rgns.data.graph import edge_channels, edge_features, radius_graph
+from rgns.data.graph import edge_channels, edge_features, radius_graph, reverse_edges
 from rgns.models import GNS, RGNS, SepGNS, State, count_parameters
 
 torch.set_num_threads(1)
@@ -58,7 +58,8 @@ def training_batch(dim: int = 2, graphs: int = 2, seed: int = 0) -> Batch:
 # ---- the contract with training ---------------------------------------------------------------
 
 @pytest.mark.parametrize("cls,options", [(GNS, {}), (RGNS, {}), (SepGNS, {}), (GNS, dict(edge_velocity=True)),
-                                         (RGNS, dict(edge_velocity=True)), (GNS, dict(decoder="pairwise"))])
+                                         (RGNS, dict(edge_velocity=True)), (GNS, dict(decoder="pairwise")),
+                                         (RGNS, dict(couplings="pairwise"))])
 @pytest.mark.parametrize("dim", [2, 3])
 def test_contract_on_a_training_batch(cls, options, dim):
     torch.manual_seed(0)
@@ -258,6 +259,49 @@ def test_gns_pairwise_decoder_conserves_momentum_away_from_the_walls(dim, edge_v
 
 
 @pytest.mark.parametrize("dim", [2, 3])
+def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_directions(dim):
+    """couplings="pairwise": the velocities' sum over the particles changes by gravity alone,
+    forward and backward in time, where no particle is within R of a wall; not so near a wall."""
+    model = RGNS(gravity_metadata(dim), latent=16, layers=3, basis="differences", couplings="pairwise").double()
+    assert model.known_gravity  # implied
+    perturb(model, seed=dim)
+    state = random_state(dim=dim, seed=dim, kinematic=0)
+    position, history = state.position.double(), state.velocity_history.double()
+    gravity = model.gravity_shift.double()
+    inside = ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)  # farther than R from every wall
+    core = inside.nonzero().squeeze(-1)
+    relabel = torch.full((len(position),), -1, dtype=torch.long)
+    relabel[core] = torch.arange(len(core))
+    full_graph = radius_graph(position, model.radius)
+    inner_graph = relabel[full_graph[:, inside[full_graph].all(0)]]
+    for graph, index, conserved in ((inner_graph, core, True), (full_graph, torch.arange(len(position)), False)):
+        p, v, t = position[index], history[index], state.particle_type[index]
+        forward = model.next_velocity(p, v, t, graph) - v[:, -1] - gravity  # [N, D]
+        backward = model.oldest_velocity(p, v, t, graph) - v[:, 0] + gravity  # one step further back
+        for change in (forward, backward):
+            scale = change.abs().sum()
+            assert scale > 1e-6
+            if conserved:
+                assert change.sum(0).abs().max() < 1e-9 * scale
+            else:  # the walls take the reaction
+                assert change.sum(0).abs().max() > 1e-6 * scale
+    state = State(position, history, state.particle_type)
+    back = model.inverse_step(model.step(state))  # still the exact inverse where it is exact
+    torch.testing.assert_close(back.position, state.position, rtol=0, atol=1e-12)
+    assert torch.equal(back.velocity_history[:, 1:], state.velocity_history[:, 1:])
+    with pytest.raises(ValueError, match="couplings"):
+        RGNS(gravity_metadata(dim), couplings="edges", **SMALL)
+
+
+def test_reverse_edges_pairs_every_edge_with_its_reverse():
+    edge_index = torch.cat([radius_graph(random_state(seed=3).position, 0.1), torch.tensor([[0], [0]])], 1)[:, :-1]
+    reverse = reverse_edges(edge_index, 80)
+    assert torch.equal(edge_index[:, reverse], edge_index.flip(0))
+    with pytest.raises(ValueError, match="reverse"):
+        reverse_edges(edge_index[:, 1:], 80)  # one edge lost its partner
+
+
+@pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("known_gravity", [False, True])
 def test_rgns_edge_velocity_conditions_are_the_same_in_both_directions(dim, known_gravity, monkeypatch):
     """With edge_velocity, a step and its inverse read v^t (the newest slot of V^t, the second
@@ -320,7 +364,8 @@ def test_unmasked_history_round_trip_is_exact_up_to_the_ilp_projection(dim, seed
         assert (moved - projected).abs().max() > 1e-2  # the projection is the whole gap, and it is not zero
 
 
-@pytest.mark.parametrize("options", [dict(), dict(encoder="mlp"), dict(edges="updated"), dict(node_norm=False)])
+@pytest.mark.parametrize("options", [dict(), dict(encoder="mlp"), dict(edges="updated"), dict(node_norm=False),
+                                     dict(couplings="pairwise")])
 def test_rgns_memory_saving_gradients_equal_plain_gradients(options):
     torch.manual_seed(0)
     # float64: the memory-saving backward recomputes the inputs by inversion, which in float32

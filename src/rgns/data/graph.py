@@ -60,6 +60,25 @@ def edge_features(position: torch.Tensor, edge_index: torch.Tensor, radius: floa
     return torch.cat([displacement, distance, relative, closing], dim=-1)
 
 
+def reverse_edges(edge_index: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """For every edge j -> i the index of its reverse i -> j, in a graph that holds both
+    directions of every pair (as :func:`radius_graph` builds it).
+
+    Raises ``ValueError`` (outside a compiled graph) when some edge has no reverse.
+
+    Shapes:
+        edge_index: ``[2, E]``  ->  ``[E]`` (int64)
+    """
+    sender, receiver = edge_index
+    key = sender * num_nodes + receiver  # [E]
+    order = torch.argsort(key)
+    wanted = receiver * num_nodes + sender  # the reverse edge's key
+    found = order[torch.searchsorted(key[order], wanted).clamp(max=max(len(key) - 1, 0))]
+    if not torch.compiler.is_compiling() and not torch.equal(key[found], wanted):
+        raise ValueError("the graph lacks the reverse of some edge: pairwise terms need both directions of every pair")
+    return found
+
+
 def edge_channels(dim: int, velocity: bool = False) -> int:
     """Width of :func:`edge_features` in ``dim`` dimensions, with or without the velocity terms."""
     return 2 * dim + 2 if velocity else dim + 1

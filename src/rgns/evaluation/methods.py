@@ -141,6 +141,8 @@ def describe(model_config: dict) -> str:
         label += f" {model_config['basis']} basis"
     if model_config.get("edge_velocity"):
         label += " edge velocity"
+    if model_config.get("couplings", "node") != "node":
+        label += f" {model_config['couplings']} couplings"
     if model_config.get("decoder", "node") != "node":
         label += f" {model_config['decoder']} decoder"
     return label

@@ -51,6 +51,15 @@ class RGNS(Simulator):
             step t <-> t+1 (the newest slot of ``V^t``, the second newest of ``V^{t+1}``), so the
             conditions stay shared and the inverse exact. Needs ``history >= 2``.
             (default: :obj:`False`)
+        couplings (str, optional): ``"node"`` (the paper's: each coupling's increment is an MLP
+            of the particle's half latent, conditions and summed messages) or ``"pairwise"``: a
+            sum of antisymmetrised pair terms plus a term that only particles within R of a wall
+            receive (:class:`~rgns.nn.reversible.Coupling`). The ILP is affine, so away from the
+            walls the velocities' sum over the particles changes by gravity alone, in both
+            directions of time (momentum conserved, as in DMCF). ``known_gravity`` is implied:
+            with pair terms that cancel, a body could not otherwise fall. Still exactly
+            invertible: a coupling may be any function of the other half and the conditions.
+            (default: ``"node"``)
     """
 
     display_name = "R-GNS"
@@ -60,8 +69,11 @@ class RGNS(Simulator):
                  layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
                  edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, node_norm: bool = True,
                  embedding: int = 16, hard_walls: bool = False, basis: str = "velocity", known_gravity: bool = False,
-                 edge_velocity: bool = False):
+                 edge_velocity: bool = False, couplings: str = "node"):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        if couplings not in ("node", "pairwise"):
+            raise ValueError(f"couplings must be 'node' or 'pairwise', got {couplings!r}")
+        known_gravity = known_gravity or couplings == "pairwise"
         if edge_velocity and history < 2:
             raise ValueError("edge_velocity needs history >= 2: v^t must be in both directions' histories")
         self.edge_velocity = bool(edge_velocity)
@@ -81,7 +93,8 @@ class RGNS(Simulator):
         # edge latent: geometry of the edge and the conditions of both ends, encoded once per step
         self.edge_encoder = mlp(edge_channels(self.dim, self.edge_velocity) + 2 * self.condition_channels, latent, latent, hidden_layers)
         self.processor = RRMP(latent, layers, self.condition_channels, hidden, hidden_layers, edges,
-                              memory_saving, zero_init, node_norm)
+                              memory_saving, zero_init, node_norm, pairwise=couplings == "pairwise",
+                              wall_channels=2 * self.dim)  # node_conditions: the wall distances first
 
     def compile_network(self, **options) -> None:
         """See :meth:`~rgns.models.base.Simulator.compile_network`. Not with the memory-saving

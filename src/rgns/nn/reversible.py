@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.nn import GroupAddRev, MessagePassing
 
+from rgns.data.graph import reverse_edges
 from rgns.nn.mlp import edge_input_terms, last_linear, mlp
 
 
@@ -53,6 +54,15 @@ class Coupling(MessagePassing):
         zero_init (bool, optional): start :math:`f^n`'s output at zero. (default: :obj:`True`)
         node_norm (bool, optional): end :math:`f^n` in a LayerNorm (bounded increments).
             (default: :obj:`True`)
+        pairwise (bool, optional): the increment is a sum of antisymmetrised pair terms plus a
+            wall term,
+            :math:`\sum_j \big(f^e(\mathbf{e}_{ij}, \mathbf{h}_i, \mathbf{h}_j) - f^e(\mathbf{e}_{ji}, \mathbf{h}_j, \mathbf{h}_i)\big)
+            + w_i\, f^n(\mathbf{h}_i, \mathbf{c}_i)`, where :math:`w_i = 1 - \min` of the first
+            ``wall_channels`` conditions (the wall distances over R, in [-1, 1]), clamped to
+            [0, 1]: away from the walls the increments sum to zero over the particles.
+            :math:`f^e` ends in a LayerNorm that starts at zero. (default: :obj:`False`)
+        wall_channels (int, optional): with ``pairwise``, how many leading conditions are wall
+            distances. (default: :obj:`0`)
 
     Shapes:
         - **input:** half latent :math:`(|\mathcal{V}|, H)`, edge indices :math:`(2, |\mathcal{E}|)`,
@@ -61,13 +71,20 @@ class Coupling(MessagePassing):
     """
 
     def __init__(self, channels: int, condition_channels: int, hidden_channels: int | None = None,
-                 hidden_layers: int = 2, zero_init: bool = True, node_norm: bool = True):
+                 hidden_layers: int = 2, zero_init: bool = True, node_norm: bool = True, pairwise: bool = False,
+                 wall_channels: int = 0):
         super().__init__(aggr="sum")
+        if pairwise and not 0 < wall_channels <= condition_channels:
+            raise ValueError(f"pairwise couplings read wall distances: wall_channels must be in 1..{condition_channels}")
         self.channels = channels
         self.zero_init = zero_init
+        self.pairwise, self.wall_channels = pairwise, wall_channels
         self.edge_mlp = mlp(3 * channels, hidden_channels or channels, channels, hidden_layers)
-        self.node_mlp = mlp(2 * channels + condition_channels, hidden_channels or channels, channels,
-                            hidden_layers, layer_norm=node_norm)
+        if pairwise:  # a bias would cancel in m_ij - m_ji
+            self.edge_mlp[-1] = nn.LayerNorm(channels, bias=False)
+        # pairwise: the wall term reads the particle's own half latent and its conditions only
+        node_in = (1 if pairwise else 2) * channels + condition_channels
+        self.node_mlp = mlp(node_in, hidden_channels or channels, channels, hidden_layers, layer_norm=node_norm)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -79,11 +96,19 @@ class Coupling(MessagePassing):
             last = self.node_mlp[-1] if isinstance(self.node_mlp[-1], nn.LayerNorm) else last_linear(self.node_mlp)
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)
+            if self.pairwise:  # the pair terms start at zero as well
+                nn.init.zeros_(self.edge_mlp[-1].weight)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
         edge_term, receiver, sender = edge_input_terms(self.edge_mlp, self.channels, x, edge_attr)  # [E|N, H_hidden]
         message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, H]
+        if self.pairwise:
+            message = message - message[reverse_edges(edge_index, x.size(0))]  # m_ij - m_ji: pairs cancel
         aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, H]
+        if self.pairwise:
+            walls = condition[:, : self.wall_channels]  # distances to the walls over R, in [-1, 1]
+            near = (1 - walls.min(dim=-1, keepdim=True).values).clamp(0, 1)  # [N, 1]: 1 at a wall, 0 from R on
+            return aggregated + near * self.node_mlp(torch.cat([x, condition], dim=-1))
         return self.node_mlp(torch.cat([x, condition, aggregated], dim=-1))
 
     def edge_update(self, receiver_i: Tensor, sender_j: Tensor, edge_term: Tensor) -> Tensor:
@@ -220,6 +245,10 @@ class RRMP(nn.Module):
         zero_init (bool, optional): start every block as the identity. (default: :obj:`True`)
         node_norm (bool, optional): end each coupling in a LayerNorm (see :class:`Coupling`).
             (default: :obj:`True`)
+        pairwise (bool, optional): antisymmetrised pair terms plus a wall term in every coupling
+            (see :class:`Coupling`). (default: :obj:`False`)
+        wall_channels (int, optional): the leading conditions that are wall distances, for
+            ``pairwise``. (default: :obj:`0`)
 
     Shapes:
         - **input:** node latents :math:`(|\mathcal{V}|, C)`, edge indices :math:`(2, |\mathcal{E}|)`,
@@ -229,7 +258,7 @@ class RRMP(nn.Module):
 
     def __init__(self, channels: int, layers: int, condition_channels: int, hidden_channels: int | None = None,
                  hidden_layers: int = 2, edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True,
-                 node_norm: bool = True):
+                 node_norm: bool = True, pairwise: bool = False, wall_channels: int = 0):
         super().__init__()
         if channels % 2:
             raise ValueError(f"RRMP splits the latent in two halves; channels must be even, got {channels}")
@@ -243,7 +272,8 @@ class RRMP(nn.Module):
         self.memory_saving = memory_saving
         self.blocks = nn.ModuleList(
             ReversibleBlock(nn.ModuleList([
-                Coupling(half, condition_channels, hidden_channels, hidden_layers, zero_init, node_norm)  # f, then g
+                Coupling(half, condition_channels, hidden_channels, hidden_layers, zero_init, node_norm, pairwise,
+                         wall_channels)  # f, then g
                 for _ in range(2)
             ]))
             for _ in range(layers)
