@@ -46,10 +46,12 @@ echo "== 2/3 training -> $out/train (R-GNS, then Sep-GNS | GNS; logs: $out/train
 # (GNS has a core to itself: 20,000 steps, where 7,500 left it 1.25x the 0.1x bar; R-GNS's best
 # checkpoint is often an early one, so it shares its core with Sep-GNS; caps sized for a 2-core
 # machine that trains GNS 32x4 eager at about 20 steps/s per process; docs/main_job.md)
-( train rgns 12500 00:00:11:00 model.memory_saving=false module.compile=true "$@" \
-  && train sep_gns 5000 00:00:04:00 model.layers=4 recipe=pushforward "$@" ) &
+# (pair terms that cancel, momentum conserved away from the walls: R-GNS's couplings=pairwise and
+# GNS's decoder=pairwise, with gravity as their reference; the three-seed study in docs/main_job.md)
+( train rgns 12500 00:00:11:00 model.memory_saving=false module.compile=true model.couplings=pairwise "$@" \
+  && train sep_gns 5000 00:00:04:00 model.layers=4 recipe=pushforward model.decoder=pairwise "$@" ) &
 first=$!
-train gns 20000 00:00:15:00 model.layers=4 recipe=pushforward module.compile=true "$@" &
+train gns 20000 00:00:15:00 model.layers=4 recipe=pushforward module.compile=true model.decoder=pairwise "$@" &
 second=$!
 status=0
 wait $first || status=$?

@@ -71,7 +71,8 @@ class StepTimer(L.Callback):
 
 
 # scripts/main.sh's per-model overrides, and what each was before the faster training step
-MAIN_OVERRIDES = {"rgns": ["model.memory_saving=false"], "gns": ["model.layers=4"], "sep_gns": ["model.layers=4"]}
+MAIN_OVERRIDES = {"rgns": ["model.memory_saving=false", "model.couplings=pairwise"],
+                  "gns": ["model.layers=4", "model.decoder=pairwise"], "sep_gns": ["model.layers=4", "model.decoder=pairwise"]}
 BEFORE = {"rgns": ["model.memory_saving=true"]}
 
 
