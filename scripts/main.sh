@@ -39,9 +39,9 @@ echo "== 2/3 training -> $out/train (R-GNS, then Sep-GNS | GNS; logs: $out/train
 # sizes and recipes per model: docs/main_job.md (equal message-passing steps: R-GNS's 2 blocks hold
 # 4 couplings, GNS has 4 interaction layers; pushforward helped GNS, R-GNS needs the time for steps)
 # (each step budget is a multiple of the validation interval, 2,500: the evaluated checkpoint is
-# chosen at validations; with the pairwise options a step costs more, and on a 2-core machine the
-# caps stop R-GNS near step 7,900 and GNS near 12,200 (docs/main_job.md): the checkpoint is then
-# chosen among the validations reached, which on a faster machine may be more)
+# chosen at validations; with the pairwise options a step costs more: on an idle 2-core machine
+# R-GNS ends its steps 5 s inside its cap and GNS's cap stops it near step 15,800
+# (docs/main_job.md): the checkpoint is then chosen among the validations reached)
 # (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU;
 # R-GNS and GNS compiled (module.compile): 1.4-2x their eager steps/s in this job after 1-2 min of
 # compilation; Sep-GNS's short run stays eager; docs/main_job.md)
