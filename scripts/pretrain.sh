@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The pretrained checkpoints in pretrained/waterdrop40_main/: the main job's models and recipes
 # (experiment=main, scripts/main.sh's per-model overrides), trained long on one CPU core each, on
-# the main job's dataset. Each model's run folder goes to outputs/pretrain/<model>/; its checkpoint
+# the main job's dataset (R-GNS with pair couplings, GNS and Sep-GNS with the pairwise decoder, as
+# scripts/main.sh). Each model's run folder goes to outputs/pretrain/<model>/; its checkpoint
 # with the best validation rollout (8 validation trajectories, every 5,000 steps) is copied to
 # pretrained/waterdrop40_main/<model>.ckpt with <model>.json: the command, the commit, the steps
 # and the time it took. Models run side by side, one thread each (start at most one per core).
@@ -22,8 +23,9 @@ mkdir -p "$dest" outputs/pretrain
 pretrain() {
   local model=$1 extra; shift
   case $model in  # step budgets sized for about an hour on one core beside another run (docs/pretrained.md)
-    rgns|rgns_forward_only) extra=(trainer.max_steps=60000 model.memory_saving=false module.compile=true) ;;
-    gns|sep_gns) extra=(trainer.max_steps=70000 model.layers=4 recipe=pushforward module.compile=true) ;;
+    rgns) extra=(trainer.max_steps=60000 model.memory_saving=false module.compile=true model.couplings=pairwise) ;;
+    rgns_forward_only) extra=(trainer.max_steps=60000 model.memory_saving=false module.compile=true) ;;
+    gns|sep_gns) extra=(trainer.max_steps=70000 model.layers=4 recipe=pushforward module.compile=true model.decoder=pairwise) ;;
     *) echo "unknown model $model (rgns rgns_forward_only gns sep_gns)" >&2; return 2 ;;
   esac
   local run=outputs/pretrain/$model
