@@ -7,7 +7,7 @@ import torch
 from torch_geometric.data import Batch, Data
 
 from rgns.data.contract import KINEMATIC, WATER
-from rgns.data.graph import edge_channels, edge_features, radius_graph, reverse_edges
+from rgns.data.graph import edge_channels, edge_features, radius_graph, reverse_edges, wall_distance
 from rgns.models import GNS, RGNS, SepGNS, State, count_parameters
 
 torch.set_num_threads(1)
@@ -293,6 +293,29 @@ def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_d
         RGNS(gravity_metadata(dim), couplings="edges", **SMALL)
 
 
+def test_gns_pairwise_decoder_is_psi_on_the_edge_less_psi_on_its_reverse():
+    """The decoder evaluates psi once per directed edge and pairs each edge with its reverse; that
+    is the definition, psi(h_i, h_j, g_ij) - psi(h_j, h_i, g_ji), evaluated on both directions."""
+    model = GNS(gravity_metadata(2), decoder="pairwise", **SMALL).double()
+    perturb(model, seed=4)
+    state = random_state(seed=4, kinematic=0)
+    position, history = state.position.double(), state.velocity_history.double()
+    edge_index = radius_graph(position, model.radius)
+    geometry = model.geometry(position, history, edge_index)
+    nodes, edges = model.encode(position, history, state.particle_type, geometry)
+    x = model.process(nodes, edge_index, edges)
+    sender, receiver = edge_index
+    flipped = model.geometry(position, history, edge_index.flip(0))  # g_ji, computed from the positions
+    pair = (model.decoder(torch.cat([x[receiver], x[sender], geometry], -1))
+            - model.decoder(torch.cat([x[sender], x[receiver], flipped], -1)))  # [E, D]
+    assert pair.abs().max() > 1e-3
+    walls = wall_distance(position, model.bounds, model.radius)
+    near = (1 - walls.min(dim=-1, keepdim=True).values).clamp(0, 1)
+    want = ((torch.zeros_like(position).index_add_(0, receiver, pair) + near * model.wall_decoder(x))
+            * model.acc_std_noisy.double() + model.gravity_reference.double())
+    torch.testing.assert_close(model.decode(x, position, edge_index, geometry), want, rtol=0, atol=1e-12)
+
+
 def test_reverse_edges_pairs_every_edge_with_its_reverse():
     edge_index = radius_graph(random_state(seed=3).position, 0.1)
     assert edge_index.size(1) > 0
@@ -513,14 +536,16 @@ def test_a_collapsed_rollout_stops_and_repeats_its_last_frame(caplog):
 
 # ---- compiled networks (module.compile) ------------------------------------------------------
 
-@pytest.mark.parametrize("cls", [GNS, RGNS])
-def test_compiled_network_computes_what_the_eager_one_does(cls):
+@pytest.mark.parametrize("cls, options", [(GNS, {}), (RGNS, {}), (GNS, {"decoder": "pairwise"}),
+                                          (RGNS, {"couplings": "pairwise"})])
+def test_compiled_network_computes_what_the_eager_one_does(cls, options):
     """compile_network changes how the network runs, not what it computes: the same velocities
     and gradients on two batches of different sizes (dynamic shapes), and a copy runs eager."""
     import copy
 
     torch.manual_seed(0)
-    eager = cls(metadata(), history=K, latent=16, layers=1, **({"memory_saving": False} if cls is RGNS else {}))
+    data = gravity_metadata(2) if options else metadata()  # the pair terms' reference is gravity
+    eager = cls(data, history=K, latent=16, layers=1, **options, **({"memory_saving": False} if cls is RGNS else {}))
     perturb(eager)
     compiled = copy.deepcopy(eager)
     compiled.compile_network(dynamic=True)

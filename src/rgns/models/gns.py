@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from rgns.data.graph import edge_channels, edge_features, wall_distance
+from rgns.data.graph import edge_channels, edge_features, reverse_edges, wall_distance
 from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn import InteractionNetwork, mlp
 
@@ -83,29 +83,31 @@ class GNS(Simulator):
         return edge_features(position, edge_index, self.radius, newest, self.vel_std_noisy)
 
     def encode(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
-               edge_index: Tensor) -> tuple[Tensor, Tensor]:
+               geometry: Tensor) -> tuple[Tensor, Tensor]:
+        """Node and edge latents ``[N, C]``, ``[E, C]`` from the state and the edge features (:meth:`geometry`)."""
         if self.basis == "velocity":
             velocities = self.normalise_velocity(velocity_history).flatten(1)  # [N, k D]
         else:
             velocities = self.to_differences(velocity_history, anchor=self.history - 1).flatten(1)  # [N, k D]
         nodes = torch.cat([velocities, self.node_conditions(position, particle_type)], dim=-1)
-        edges = self.geometry(position, velocity_history, edge_index)  # [E, D + 1 (+ D + 1)]
-        return self.node_encoder(nodes), self.edge_encoder(edges)  # [N, C], [E, C]
+        return self.node_encoder(nodes), self.edge_encoder(geometry)  # [N, C], [E, C]
 
     def process(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> Tensor:
         for layer in self.processor:
             x, edge_attr = layer(x, edge_index, edge_attr)
         return x
 
-    def decode(self, x: Tensor, position: Tensor | None = None, velocity_history: Tensor | None = None,
-               edge_index: Tensor | None = None) -> Tensor:
-        """The physical acceleration ``[N, D]``; the pairwise decoder also reads the scene."""
+    def decode(self, x: Tensor, position: Tensor | None = None, edge_index: Tensor | None = None,
+               geometry: Tensor | None = None) -> Tensor:
+        """The physical acceleration ``[N, D]``; the pairwise decoder also reads the scene (the
+        positions, the graph and its edge features)."""
         reference = self.gravity_reference if self.known_gravity else self.acc_mean  # [D]
         if not self.pairwise:
             return self.decoder(x) * self.acc_std_noisy + reference
         sender, receiver = edge_index
-        into = self.decoder(torch.cat([x[receiver], x[sender], self.geometry(position, velocity_history, edge_index)], -1))
-        back = self.decoder(torch.cat([x[sender], x[receiver], self.geometry(position, velocity_history, edge_index.flip(0))], -1))
+        into = self.decoder(torch.cat([x[receiver], x[sender], geometry], -1))  # [E, D]: psi(h_i, h_j, g_ij)
+        # psi(h_j, h_i, g_ji) is psi on the reverse edge: the graph holds both directions of every pair
+        back = into[reverse_edges(edge_index, x.size(0))]
         pairs = torch.zeros_like(position).index_add_(0, receiver, into - back)  # [N, D], sums to zero
         walls = wall_distance(position, self.bounds, self.radius)  # [N, 2 D], in [-1, 1]
         near = (1 - walls.min(dim=-1, keepdim=True).values).clamp(0, 1)  # [N, 1]: 1 at a wall, 0 from R on
@@ -113,7 +115,8 @@ class GNS(Simulator):
 
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
-        x, edge_attr = self.encode(position, velocity_history, particle_type, edge_index)
+        geometry = self.geometry(position, velocity_history, edge_index)  # [E, D + 1 (+ D + 1)]
+        x, edge_attr = self.encode(position, velocity_history, particle_type, geometry)
         x = self.process(x, edge_index, edge_attr)
-        acceleration = self.decode(x, position, velocity_history, edge_index)
+        acceleration = self.decode(x, position, edge_index, geometry)
         return velocity_history[:, -1] + acceleration  # dt = 1

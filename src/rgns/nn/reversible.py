@@ -99,11 +99,15 @@ class Coupling(MessagePassing):
             if self.pairwise:  # the pair terms start at zero as well
                 nn.init.zeros_(self.edge_mlp[-1].weight)
 
-    def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
+    def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor,
+                reverse: Tensor | None = None) -> Tensor:
+        """``reverse [E, 1]``: with ``pairwise``, each edge's reverse (:func:`~rgns.data.graph.reverse_edges`,
+        as a column: GroupAddRev hands it whole to both couplings); found here when not given."""
         edge_term, receiver, sender = edge_input_terms(self.edge_mlp, self.channels, x, edge_attr)  # [E|N, H_hidden]
         message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, H]
         if self.pairwise:
-            message = message - message[reverse_edges(edge_index, x.size(0))]  # m_ij - m_ji: pairs cancel
+            back = reverse[:, 0] if reverse is not None else reverse_edges(edge_index, x.size(0))  # [E]
+            message = message - message[back]  # m_ij - m_ji: pairs cancel
         aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, H]
         if self.pairwise:
             walls = condition[:, : self.wall_channels]  # distances to the walls over R, in [-1, 1]
@@ -269,7 +273,7 @@ class RRMP(nn.Module):
             raise ValueError(f"edges must be 'fixed' or 'updated', got {edges!r}")
         half = channels // 2
         hidden_channels = hidden_channels or half
-        self.memory_saving = memory_saving
+        self.memory_saving, self.pairwise = memory_saving, pairwise
         self.blocks = nn.ModuleList(
             ReversibleBlock(nn.ModuleList([
                 Coupling(half, condition_channels, hidden_channels, hidden_layers, zero_init, node_norm, pairwise,
@@ -296,14 +300,23 @@ class RRMP(nn.Module):
         for block in self.blocks:
             block.disable = plain
 
+    def _shared(self, x: Tensor, edge_index: Tensor, condition: Tensor) -> tuple[Tensor, ...]:
+        """What every coupling reads besides its edge latent: the node conditions, and with
+        ``pairwise`` the reverse of every edge (found once for all the couplings)."""
+        if not self.pairwise:
+            return (condition,)
+        return condition, reverse_edges(edge_index, x.size(0))[:, None]  # [E, 1]
+
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
         self._set_memory_saving()
+        shared = self._shared(x, edge_index, condition)
         for block, edge_latent in zip(self.blocks, self.edge_latents(edge_attr)):
-            x = block(x, edge_index, edge_latent, condition)
+            x = block(x, edge_index, edge_latent, *shared)
         return x
 
     def inverse(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
         self._set_memory_saving()
+        shared = self._shared(x, edge_index, condition)
         for block, edge_latent in zip(reversed(self.blocks), reversed(self.edge_latents(edge_attr))):
-            x = block.inverse(x, edge_index, edge_latent, condition)
+            x = block.inverse(x, edge_index, edge_latent, *shared)
         return x
