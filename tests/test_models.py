@@ -7,7 +7,7 @@ import torch
 from torch_geometric.data import Batch, Data
 
 from rgns.data.contract import KINEMATIC, WATER
-from rgns.data.graph import edge_channels, edge_features, radius_graph, reverse_edges, wall_distance
+from rgns.data.graph import edge_channels, edge_features, radius_graph, reverse_edges, wall_distance, wall_gate
 from rgns.models import GNS, RGNS, SepGNS, State, count_parameters
 
 torch.set_num_threads(1)
@@ -314,6 +314,13 @@ def test_gns_pairwise_decoder_is_psi_on_the_edge_less_psi_on_its_reverse():
     want = ((torch.zeros_like(position).index_add_(0, receiver, pair) + near * model.wall_decoder(x))
             * model.acc_std_noisy.double() + model.gravity_reference.double())
     torch.testing.assert_close(model.decode(x, position, edge_index, geometry), want, rtol=0, atol=1e-12)
+
+
+def test_wall_gate_is_one_at_a_wall_and_falls_to_zero_at_r_from_the_nearest():
+    bounds = torch.tensor([[0.0, 1.0], [0.0, 2.0]])
+    position = torch.tensor([[0.0, 1.0], [0.05, 1.0], [0.5, 1.99], [0.5, 1.0], [1.2, 1.0]])  # R = 0.1
+    gate = wall_gate(wall_distance(position, bounds, 0.1))
+    torch.testing.assert_close(gate[:, 0], torch.tensor([1.0, 0.5, 0.9, 0.0, 1.0]))  # outside: 1
 
 
 def test_reverse_edges_pairs_every_edge_with_its_reverse():

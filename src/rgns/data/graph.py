@@ -93,3 +93,13 @@ def wall_distance(position: torch.Tensor, bounds: torch.Tensor, radius: float) -
     lower = position - bounds[:, 0]
     upper = bounds[:, 1] - position
     return torch.cat([lower, upper], dim=-1).div(radius).clamp(-1.0, 1.0)
+
+
+def wall_gate(walls: torch.Tensor) -> torch.Tensor:
+    """1 at a wall, falling linearly to 0 at R from the nearest one: the weight of the pairwise
+    models' wall term, read from :func:`wall_distance`'s features.
+
+    Shapes:
+        walls: ``[N, 2 D]`` in [-1, 1]  ->  ``[N, 1]``
+    """
+    return (1 - walls.min(dim=-1, keepdim=True).values).clamp(0, 1)

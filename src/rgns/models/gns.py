@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from rgns.data.graph import edge_channels, edge_features, reverse_edges, wall_distance
+from rgns.data.graph import edge_channels, edge_features, reverse_edges, wall_distance, wall_gate
 from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn import InteractionNetwork, mlp
 
@@ -109,8 +109,7 @@ class GNS(Simulator):
         # psi(h_j, h_i, g_ji) is psi on the reverse edge: the graph holds both directions of every pair
         back = into[reverse_edges(edge_index, x.size(0))]
         pairs = torch.zeros_like(position).index_add_(0, receiver, into - back)  # [N, D], sums to zero
-        walls = wall_distance(position, self.bounds, self.radius)  # [N, 2 D], in [-1, 1]
-        near = (1 - walls.min(dim=-1, keepdim=True).values).clamp(0, 1)  # [N, 1]: 1 at a wall, 0 from R on
+        near = wall_gate(wall_distance(position, self.bounds, self.radius))  # [N, 1]: 1 at a wall, 0 from R on
         return (pairs + near * self.wall_decoder(x)) * self.acc_std_noisy + reference
 
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.nn import GroupAddRev, MessagePassing
 
-from rgns.data.graph import reverse_edges
+from rgns.data.graph import reverse_edges, wall_gate
 from rgns.nn.mlp import edge_input_terms, last_linear, mlp
 
 
@@ -110,8 +110,7 @@ class Coupling(MessagePassing):
             message = message - message[back]  # m_ij - m_ji: pairs cancel
         aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, H]
         if self.pairwise:
-            walls = condition[:, : self.wall_channels]  # distances to the walls over R, in [-1, 1]
-            near = (1 - walls.min(dim=-1, keepdim=True).values).clamp(0, 1)  # [N, 1]: 1 at a wall, 0 from R on
+            near = wall_gate(condition[:, : self.wall_channels])  # [N, 1]: 1 at a wall, 0 from R on
             return aggregated + near * self.node_mlp(torch.cat([x, condition], dim=-1))
         return self.node_mlp(torch.cat([x, condition, aggregated], dim=-1))
 
