@@ -1,6 +1,9 @@
 """Train a simulator: ``python train.py [overrides]``; sweeps with ``-m``, e.g.
 ``python train.py -m loss=dl1,dl2,dl3,dl4``. Returns the best validation loss (for sweepers).
 
+``init_from=<checkpoint>`` starts from a checkpoint's weights with a fresh optimiser, schedule and
+step count (a fine-tune, e.g. a longer schedule for a finished run); ``resume=`` continues a run.
+
 Every run ends with ``checkpoints/last.ckpt``; one stopped by SIGTERM or Ctrl-C finishes its step,
 saves it, says where it is and exits with 143 / 130 (rgns.training.checkpointing)."""
 from __future__ import annotations
@@ -15,6 +18,7 @@ from omegaconf import DictConfig
 from rgns.runs import register_resolvers
 from rgns.training.checkpointing import LastCheckpoint, StopOnSignal
 from rgns.training.ddp import ddp_job
+from rgns.training.module import warm_start
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
@@ -24,6 +28,11 @@ def main(cfg: DictConfig) -> float | None:
     datamodule = instantiate(cfg.data)
     datamodule.prepare_data()
     module = instantiate(cfg.module, model=cfg.model, loss=cfg.loss, metadata=datamodule.metadata, _recursive_=False)
+    if cfg.init_from:
+        if cfg.resume:
+            raise ValueError("init_from and resume both set: resume= continues a run (its optimiser, schedule and "
+                             "step), init_from= starts a new one from a checkpoint's weights; give one")
+        warm_start(module, cfg.init_from)
     trainer = instantiate(
         cfg.trainer,
         logger=instantiate(cfg.logger),

@@ -150,6 +150,30 @@ def test_resume_after_kill_continues_from_last_checkpoint(dataset, tmp_path):
     assert float(next(iter(resumed["optimizer_states"][0]["state"].values()))["step"]) == step + 5
 
 
+def test_init_from_starts_a_new_run_from_a_checkpoints_weights(dataset, tmp_path):
+    common = ["data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.val_check_interval=3",
+              "callbacks.early_stopping=null", *TINY]
+    train(tmp_path, *common, "trainer.max_steps=6", f"hydra.run.dir={tmp_path / 'first'}")
+    first = tmp_path / "first" / "checkpoints" / "last.ckpt"
+    # a learning rate of 0 and no schedule (a cosine would rise to its floor): the weights stay where they start
+    train(tmp_path, *common, "trainer.max_steps=3", "module.optimizer.lr=0.0", "module.scheduler=null",
+          f"init_from={first}", f"hydra.run.dir={tmp_path / 'second'}")
+    before = torch.load(first, weights_only=False)
+    after = torch.load(tmp_path / "second" / "checkpoints" / "last.ckpt", weights_only=False)
+    assert after["global_step"] == 3  # its own step count, not the first run's 6 + 3
+    assert float(next(iter(after["optimizer_states"][0]["state"].values()))["step"]) == 3  # a fresh Adam
+    assert before["state_dict"].keys() == after["state_dict"].keys()
+    for name, value in before["state_dict"].items():
+        assert torch.equal(after["state_dict"][name], value), name
+    # a network of another width: refused, naming the file
+    wider = train(tmp_path, *common, "trainer.max_steps=3", f"init_from={first}", "model.latent=24",
+                  f"hydra.run.dir={tmp_path / 'third'}", check=False)
+    assert wider.returncode != 0 and f"{first}: its weights do not fit" in wider.stderr
+    both = train(tmp_path, *common, "trainer.max_steps=3", f"init_from={first}", f"resume={first}",
+                 f"hydra.run.dir={tmp_path / 'fourth'}", check=False)
+    assert both.returncode != 0 and "init_from and resume both set" in both.stderr
+
+
 def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(dataset, tmp_path):
     run = tmp_path / "run"
     common = ["data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.val_check_interval=5",

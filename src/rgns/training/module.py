@@ -310,6 +310,27 @@ def load_simulator(path: str, map_location: str = "cpu"):
     }
 
 
+def warm_start(module: SimulatorModule, path: str) -> None:
+    """Load the weights of the checkpoint at ``path`` into ``module`` (and nothing else: the
+    optimiser, schedule and step count of the run start afresh). With weight averaging the
+    checkpoint's weights are the averaged ones, which is what its validation scored.
+
+    Raises :class:`CheckpointError` naming the file when it is not a readable rgns checkpoint or
+    its network does not fit the module's (another model, width or depth)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: checkpoint to start from (init_from) not found")
+    extras = _read_plain(path)
+    state = extras.get("state_dict") if isinstance(extras, dict) else None
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path}: a PyTorch file, but not an rgns training checkpoint (no state_dict)")
+    try:
+        module.load_state_dict(state)
+    except RuntimeError as err:
+        first = " ".join(str(err).split())[:600]
+        raise CheckpointError(f"{path}: its weights do not fit this run's model (another model, width or depth "
+                              f"than the run's config?): {first}") from None
+
+
 def _read_plain(path: str):
     """What the PyTorch file ``path`` holds, read with ``weights_only=True`` onto the CPU.
 
