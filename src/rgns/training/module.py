@@ -282,6 +282,10 @@ class CheckpointError(ValueError):
     message names the file and what is wrong."""
 
 
+_NOT_A_CHECKPOINT = ("a PyTorch file, but not an rgns training checkpoint (it needs a state_dict and "
+                     "hyper_parameters with 'model' and 'metadata', as train.py writes)")
+
+
 def load_simulator(path: str, map_location: str = "cpu"):
     """The trained simulator (a plain ``nn.Module``, eval mode) and its checkpoint's extras.
 
@@ -289,13 +293,10 @@ def load_simulator(path: str, map_location: str = "cpu"):
     all that train.py writes, and never pickled code; the module is rebuilt from what was read.
     Raises :class:`CheckpointError` naming the file when it is not a readable checkpoint
     (truncated, not a PyTorch file, holding pickled objects) or not one of a :class:`SimulatorModule`."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: checkpoint not found")
-    extras = _read_plain(path)
-    hparams = extras.get("hyper_parameters") if isinstance(extras, dict) else None
-    if not isinstance(hparams, dict) or not {"model", "metadata"} <= set(hparams) or "state_dict" not in extras:
-        raise CheckpointError(f"{path}: a PyTorch file, but not an rgns training checkpoint (it needs a state_dict "
-                              "and hyper_parameters with 'model' and 'metadata', as train.py writes)")
+    extras = _read_checkpoint(path, "checkpoint")
+    hparams = extras.get("hyper_parameters")
+    if not isinstance(hparams, dict) or not {"model", "metadata"} <= set(hparams):
+        raise CheckpointError(f"{path}: {_NOT_A_CHECKPOINT}")
     try:
         module = SimulatorModule(**hparams)
         module.load_state_dict(extras["state_dict"])
@@ -317,18 +318,27 @@ def warm_start(module: SimulatorModule, path: str) -> None:
 
     Raises :class:`CheckpointError` naming the file when it is not a readable rgns checkpoint or
     its network does not fit the module's (another model, width or depth)."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: checkpoint to start from (init_from) not found")
-    extras = _read_plain(path)
-    state = extras.get("state_dict") if isinstance(extras, dict) else None
-    if not isinstance(state, dict):
-        raise CheckpointError(f"{path}: a PyTorch file, but not an rgns training checkpoint (no state_dict)")
+    state = _read_checkpoint(path, "checkpoint to start from (init_from)")["state_dict"]
     try:
         module.load_state_dict(state)
     except RuntimeError as err:
         first = " ".join(str(err).split())[:600]
         raise CheckpointError(f"{path}: its weights do not fit this run's model (another model, width or depth "
                               f"than the run's config?): {first}") from None
+
+
+def _read_checkpoint(path: str, role: str) -> dict:
+    """What the checkpoint file ``path`` holds, checked to have a ``state_dict``; ``role`` names
+    the file in the error when it is missing ("checkpoint to start from (init_from)").
+
+    Raises FileNotFoundError, or :class:`CheckpointError` naming the file when it is not a
+    readable PyTorch file or holds no state_dict."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: {role} not found")
+    extras = _read_plain(path)
+    if not isinstance(extras, dict) or not isinstance(extras.get("state_dict"), dict):
+        raise CheckpointError(f"{path}: {_NOT_A_CHECKPOINT}")
+    return extras
 
 
 def _read_plain(path: str):
