@@ -69,6 +69,27 @@ def test_forward_task_reports_where_a_rollout_leaves_the_box():
     assert inverse["methods"]["Const. velocity"]["horizons"][5]["inverse_mse"] == pytest.approx(0.0, abs=1e-10)
 
 
+def test_density_at_the_end_compares_neighbour_counts():
+    """Predicted over true mean neighbours: 1 for the truth itself, above 1 for a compressed copy
+    (counted here by brute force), 0 for one spread past the radius, None for a blown-up one."""
+    lattice = torch.stack(torch.meshgrid(torch.arange(10.0), torch.arange(10.0), indexing="ij"), -1).reshape(-1, 2) * 0.01
+    radius = 0.0105  # 4 neighbours inside, 3 on edges, 2 at corners: 3.6 on the mean
+    squeezed = 0.6 * lattice  # spacing 0.006: the diagonals (0.0085) come within the radius too
+
+    def brute_force(position):
+        distance = torch.cdist(position.double(), position.double())
+        return float(((distance < radius).sum() - len(position)) / len(position))
+
+    assert brute_force(lattice) == pytest.approx(3.6)
+    ratio = ForwardRollout._density_ratio(squeezed, lattice, radius)
+    assert ratio == pytest.approx(brute_force(squeezed) / 3.6) and ratio > 1.5
+    assert ForwardRollout._density_ratio(lattice, lattice, radius) == pytest.approx(1.0)
+    assert ForwardRollout._density_ratio(2.0 * lattice, lattice, radius) == 0.0
+    blown_up = lattice.clone()
+    blown_up[3] = float("nan")
+    assert ForwardRollout._density_ratio(blown_up, lattice, radius) is None
+
+
 def pid_after(job: int) -> tuple[int, int]:
     time.sleep(0.05)  # long enough that a forked worker gets some of the jobs
     return job * job, os.getpid()
@@ -385,6 +406,7 @@ def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_pa
     # as trained: only the first rolls out with hard walls; hard_walls=true: all of them do
     assert twins == ([loaded[0].label] if hard_walls is None else [m.label for m in loaded])
     assert all(row["max_outside"] is not None and row["max_outside"] >= 0 for row in forward.values())
+    assert all(len(row["density_end_per_trajectory"]) == 2 for row in forward.values())
     group, = sections["over_seeds"].values()
     values = [forward[m.label]["rollout_mse"] for m in loaded]
     assert group["rollout_mse"]["values"] == pytest.approx(values)

@@ -58,6 +58,18 @@ def compute_statistics(trajectories: Iterable[Trajectory | tuple]) -> dict[str, 
 
 
 # ---------------------------------------------------------------- the regime of a dataset
+def mean_neighbours(position, radius: float) -> float:
+    """Mean number of other particles within ``radius`` of a particle, ``[M, D]`` positions:
+    the fluid's density as the graph sees it (0 for no particles)."""
+    from scipy.spatial import cKDTree
+
+    position = np.asarray(position, dtype=np.float64)
+    if len(position) == 0:
+        return 0.0
+    pairs = cKDTree(position).query_pairs(radius, output_type="ndarray")
+    return 2 * len(pairs) / len(position)
+
+
 def regime(position: np.ndarray, particle_type: np.ndarray, radius: float, points: int = 10) -> dict:
     """Is the fluid coherent, and does it settle? For one trajectory ``[T, N, D]``:
 
@@ -67,14 +79,9 @@ def regime(position: np.ndarray, particle_type: np.ndarray, radius: float, point
     - ``energy_left``: mean kinetic energy of the last 10 frames over its peak (per-frame
       velocities: the fraction of the motion still there at the end).
     """
-    from scipy.spatial import cKDTree
-
     moving = np.asarray(position, dtype=np.float64)[:, np.asarray(particle_type) != KINEMATIC]  # [T, M, D]
     frames = np.linspace(0, len(moving) - 1, points).round().astype(int)
-    neighbours = []
-    for frame in frames:
-        pairs = cKDTree(moving[frame]).query_pairs(radius, output_type="ndarray")
-        neighbours.append(2 * len(pairs) / max(moving.shape[1], 1))
+    neighbours = [mean_neighbours(moving[frame], radius) for frame in frames]
     energy = (np.diff(moving, axis=0) ** 2).sum(-1).mean(-1)  # [T - 1]
     peak = float(energy.max())
     return {"frames": frames.tolist(), "neighbours": neighbours,

@@ -84,17 +84,21 @@ def forward_tables(results: dict) -> list[str]:
         forward = d["forward"]
         steps = sorted({s for row in forward["methods"].values() for s in row["ot"]}, key=int)
         header = ["Method", "Rollout MSE (1e-3)", *(f"OT (1e-3), step {s}" for s in steps),
-                  *(f"MMD (1e-2), step {s}" for s in steps), "Stable steps", "Farthest outside the box (radii)"]
+                  *(f"MMD (1e-2), step {s}" for s in steps), "Stable steps", "Farthest outside the box (radii)",
+                  "Density at the end (predicted / true)"]
         rows = [[label, number(row["rollout_mse"], 1e3), *(number(row["ot"].get(s), 1e3) for s in steps),
                  *(number(row["mmd"].get(s), 1e2) for s in steps), steps_cell(row["stable_steps"], not row["diverged"]),
-                 "—" if row.get("max_outside") is None else f"{row['max_outside']:.2f}"]
+                 "—" if row.get("max_outside") is None else f"{row['max_outside']:.2f}",
+                 "—" if row.get("density_end") is None else f"{row['density_end']:.2f}"]
                 for label, row in forward["methods"].items()]
         s = forward["settings"]
         out += ["", f"### Forward rollouts on {name}", "",
                 f"Measured on {s['trajectories']} {d['split']} trajectories ({s['particles']} particles), "
                 f"{s['steps']} steps from frame {s['start']}. OT: squared 2-Wasserstein distance; MMD: squared MMD with "
                 f"Gaussian kernels at {s['mmd_scale']:g} x (0.5, 1, 2); both on at most {s['distribution_particles']} "
-                "moving particles, averaged over the trajectories.", "", table(header, rows)]
+                "moving particles, averaged over the trajectories. Density at the end: the mean number of "
+                "neighbours within the connectivity radius at the last step, predicted over true (1: the water "
+                "keeps the solver's density; above 1: compressed; below: spread thinner).", "", table(header, rows)]
     return out
 
 
