@@ -23,6 +23,7 @@ from rgns import config_dir
 from rgns.data.contract import SPLITS, WATER, write_metadata, write_split
 from rgns.evaluation.baselines import Ballistic, ConstantVelocity
 from rgns.evaluation.methods import Method, _disambiguate, describe, find_checkpoints
+from rgns.evaluation.rest import settled_pool
 from rgns.evaluation.run import evaluate
 from rgns.evaluation.tasks import Dataset, ForwardRollout, InverseConsistency, in_parallel
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
@@ -88,6 +89,31 @@ def test_density_at_the_end_compares_neighbour_counts():
     blown_up = lattice.clone()
     blown_up[3] = float("nan")
     assert ForwardRollout._density_ratio(blown_up, lattice, radius) is None
+
+
+def test_settled_pool_finds_a_simulator_that_squeezes_the_water():
+    """A lattice at rest stays at rest under constant velocity (x1, no displacement); one whose
+    last frames contract towards its centre keeps contracting under it: denser, and each particle
+    moves on by its last velocity times the steps, while the truth's own drift is measured too."""
+    lattice = torch.stack(torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij"), -1).reshape(-1, 2)
+    lattice = 0.4 + 0.01 * lattice  # spacing 0.01 inside the box
+    metadata, radius, steps = make_metadata(frames=30), 0.0105, 10
+    model, types = ConstantVelocity(metadata), torch.full((64,), WATER)
+    at_rest = settled_pool(model, lattice.expand(30, -1, -1), types, steps, radius)
+    for who in ("model", "truth"):
+        assert at_rest[who]["neighbours_ratio"] == pytest.approx(1.0)
+        assert at_rest[who]["rms_displacement"] == pytest.approx(0.0, abs=1e-7)
+    centre = lattice.mean(0)
+    scale = torch.linspace(1.0, 0.8, 30)[:, None, None]  # 0.69% closer each frame
+    shrinking = centre + scale * (lattice - centre)
+    squeezed = settled_pool(model, shrinking, types, steps, radius)
+    assert squeezed["model"]["neighbours_ratio"] > 1.5  # spacing 0.008 -> 0.0073: the diagonals come within R
+    last_velocity = shrinking[-1] - shrinking[-2]
+    expected = float((steps * last_velocity).pow(2).sum(-1).mean().sqrt())
+    assert squeezed["model"]["rms_displacement"] == pytest.approx(expected, rel=1e-4)
+    assert squeezed["truth"]["rms_displacement"] == pytest.approx(expected, rel=1e-4)  # the same contraction
+    with pytest.raises(ValueError, match="too short"):
+        settled_pool(model, shrinking[:8], types, steps, radius)
 
 
 def pid_after(job: int) -> tuple[int, int]:
