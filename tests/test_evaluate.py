@@ -333,6 +333,23 @@ def test_evaluate_one_checkpoint_forward_task_only(trained, tmp_path):
     report = (tmp_path / "report.md").read_text()
     assert "Inverse inference comparison" not in report and "forward_data.gif" in report
     assert not (tmp_path / "consistency_vs_k.png").exists() and (tmp_path / "error_vs_step.png").is_file()
+    (row,) = data["forward"]["methods"].values()
+    density = markdown_tables(report)["Forward rollouts on data"]
+    (label,) = [key for key in density if key != "Method"]
+    column = density["Method"].index("Density at the end (predicted / true)")
+    assert value(density[label][column]) == pytest.approx(row["density_end"], abs=0.006)
+
+
+def test_rest_diagnostic_runs_on_a_checkpoint(trained, tmp_path):
+    from rgns.evaluation.rest import main as rest
+
+    checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
+    result = rest([str(checkpoint), "--steps", "5", "--trajectories", "2", "--json", str(tmp_path / "rest.json")])
+    assert len(result["trajectories"]) == 2 and result["steps"] == 5
+    assert json.loads((tmp_path / "rest.json").read_text())["summary"] == result["summary"]
+    assert all(row["model"]["rms_displacement"] > 0 for row in result["trajectories"])  # random data is not at rest
+    with pytest.raises(SystemExit):
+        rest([str(checkpoint), "--steps", "0"])
 
 
 def test_evaluate_goal_task_writes_figure_gif_and_matching_table(trained, tmp_path):
