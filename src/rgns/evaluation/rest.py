@@ -73,7 +73,10 @@ def main(argv: list[str] | None = None) -> dict:
     dataset = Dataset.load(root, args.split, args.trajectories, model.history, None)
     check_fits(model, args.checkpoint, dataset.metadata, dataset.particle_types, f"{root} ({args.split})")
     radius = float(dataset.metadata["default_connectivity_radius"])
-    rows = [settled_pool(model, p, t, args.steps, radius) for p, t in dataset.trajectories]
+    try:
+        rows = [settled_pool(model, p, t, args.steps, radius) for p, t in dataset.trajectories]
+    except ValueError as err:
+        raise SystemExit(f"{root} ({args.split}): {err}; lower --steps") from None
     summary = {who: {key: float(np.mean([row[who][key] for row in rows])) for key in rows[0][who]}
                for who in ("model", "truth")}
     print(f"{args.checkpoint}: {args.steps} steps from the last frame of {len(rows)} {args.split} trajectories of {root}")
