@@ -23,6 +23,7 @@ from rgns import config_dir
 from rgns.data.contract import SPLITS, WATER, write_metadata, write_split
 from rgns.evaluation.baselines import Ballistic, ConstantVelocity
 from rgns.evaluation.methods import Method, _disambiguate, describe, find_checkpoints
+from rgns.evaluation.metrics import density_ratio
 from rgns.evaluation.rest import settled_pool
 from rgns.evaluation.run import evaluate
 from rgns.evaluation.tasks import Dataset, ForwardRollout, InverseConsistency, in_parallel
@@ -82,13 +83,13 @@ def test_density_at_the_end_compares_neighbour_counts():
         return float(((distance < radius).sum() - len(position)) / len(position))
 
     assert brute_force(lattice) == pytest.approx(3.6)
-    ratio = ForwardRollout._density_ratio(squeezed, lattice, radius)
+    ratio = density_ratio(squeezed, lattice, radius)
     assert ratio == pytest.approx(brute_force(squeezed) / 3.6) and ratio > 1.5
-    assert ForwardRollout._density_ratio(lattice, lattice, radius) == pytest.approx(1.0)
-    assert ForwardRollout._density_ratio(2.0 * lattice, lattice, radius) == 0.0
+    assert density_ratio(lattice, lattice, radius) == pytest.approx(1.0)
+    assert density_ratio(2.0 * lattice, lattice, radius) == 0.0
     blown_up = lattice.clone()
     blown_up[3] = float("nan")
-    assert ForwardRollout._density_ratio(blown_up, lattice, radius) is None
+    assert density_ratio(blown_up, lattice, radius) is None
 
 
 def test_settled_pool_finds_a_simulator_that_squeezes_the_water():

@@ -5,6 +5,7 @@
 - MMD: squared maximum mean discrepancy with Gaussian kernels at the scale of the
   connectivity radius;
 - Chamfer distance (symmetric mean of squared nearest-neighbour distances);
+- density ratio: mean neighbours within the radius of one particle set over another's;
 - stability: the first step at which a rollout diverges (NaN, particles leaving the box, kinetic
   energy blowing up).
 """
@@ -14,6 +15,7 @@ import numpy as np
 import ot
 import torch
 
+from rgns.data.stats import mean_neighbours
 from rgns.training.losses import gaussian_mmd
 
 
@@ -24,6 +26,16 @@ def mse_per_step(predicted: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
 
 def rollout_mse(predicted: torch.Tensor, truth: torch.Tensor) -> float:
     return float((predicted - truth).pow(2).mean())
+
+
+def density_ratio(x: torch.Tensor, reference: torch.Tensor, radius: float) -> float | None:
+    """Mean neighbours within ``radius`` in ``x`` over those in ``reference`` (``[M, D]`` each):
+    1 when ``x`` keeps the reference's density, above 1 when it is compressed, below when it
+    spreads thinner. ``None`` for non-finite positions or no neighbours in the reference."""
+    if not bool(torch.isfinite(x).all()):
+        return None
+    before = mean_neighbours(reference.cpu().numpy(), radius)
+    return mean_neighbours(x.cpu().numpy(), radius) / before if before > 0 else None
 
 
 def optimal_transport(x: torch.Tensor, y: torch.Tensor) -> float:

@@ -20,19 +20,18 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from rgns.data.contract import KINEMATIC
-from rgns.data.stats import mean_neighbours
+from rgns.evaluation.metrics import density_ratio
 from rgns.models import Simulator, State
 
 
-def drift(start: Tensor, end: Tensor, radius: float) -> dict[str, float]:
-    """Density change and displacement from ``start`` to ``end`` (``[M, D]`` moving particles)."""
-    before = mean_neighbours(start.cpu().numpy(), radius)
-    return dict(neighbours_ratio=mean_neighbours(end.cpu().numpy(), radius) / before if before > 0 else float("nan"),
+def drift(start: Tensor, end: Tensor, radius: float) -> dict[str, float | None]:
+    """Density change (``None`` where :func:`density_ratio` has none) and displacement from
+    ``start`` to ``end`` (``[M, D]`` moving particles)."""
+    return dict(neighbours_ratio=density_ratio(end, start, radius),
                 rms_displacement=float((end - start).pow(2).sum(-1).mean().sqrt()))
 
 
@@ -54,7 +53,7 @@ def settled_pool(model: Simulator, position: Tensor, particle_type: Tensor, step
 
 def main(argv: list[str] | None = None) -> dict:
     from rgns.evaluation.methods import check_fits, trained_on
-    from rgns.evaluation.tasks import Dataset
+    from rgns.evaluation.tasks import Dataset, mean_or_none
     from rgns.training.module import load_simulator
 
     parser = argparse.ArgumentParser(prog="python -m rgns.evaluation.rest", description=__doc__.split("\n\n")[0])
@@ -77,17 +76,21 @@ def main(argv: list[str] | None = None) -> dict:
         rows = [settled_pool(model, p, t, args.steps, radius) for p, t in dataset.trajectories]
     except ValueError as err:
         raise SystemExit(f"{root} ({args.split}): {err}; lower --steps") from None
-    summary = {who: {key: float(np.mean([row[who][key] for row in rows])) for key in rows[0][who]}
+    summary = {who: {key: mean_or_none(row[who][key] for row in rows) for key in rows[0][who]}
                for who in ("model", "truth")}
     print(f"{args.checkpoint}: {args.steps} steps from the last frame of {len(rows)} {args.split} trajectories of {root}")
     for who, label in (("model", "simulator, from the last frame"), ("truth", f"truth, its last {args.steps} frames")):
-        print(f"  {label:<32} neighbours x{summary[who]['neighbours_ratio']:.3f}  "
-              f"rms displacement {summary[who]['rms_displacement']:.4f}  (per trajectory: "
-              + " ".join(f"x{row[who]['neighbours_ratio']:.2f}" for row in rows) + ")")
+        print(f"  {label:<32} neighbours x{_figure(summary[who]['neighbours_ratio'], 3)}  "
+              f"rms displacement {_figure(summary[who]['rms_displacement'], 4)}  (per trajectory: "
+              + " ".join(f"x{_figure(row[who]['neighbours_ratio'], 2)}" for row in rows) + ")")
     result = dict(checkpoint=args.checkpoint, split=args.split, steps=args.steps, summary=summary, trajectories=rows)
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
     return result
+
+
+def _figure(value: float | None, digits: int) -> str:
+    return "—" if value is None else f"{value:.{digits}f}"
 
 
 if __name__ == "__main__":

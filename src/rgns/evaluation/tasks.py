@@ -37,8 +37,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from rgns.data.contract import KINEMATIC, DatasetError, check_dataset, open_split
-from rgns.data.stats import mean_neighbours
-from rgns.evaluation.metrics import divergence_step, mmd, mse_per_step, optimal_transport
+from rgns.evaluation.metrics import density_ratio, divergence_step, mmd, mse_per_step, optimal_transport
 from rgns.models import State
 from rgns.training.rollouts import inverse_then_forward
 
@@ -288,7 +287,7 @@ class ForwardRollout:
     def _metrics(self, predicted, truth, particle_type, dataset, position, scale) -> dict:
         per_step = mse_per_step(predicted, truth)
         moving = (particle_type != KINEMATIC).nonzero().squeeze(1)
-        density_end = self._density_ratio(predicted[-1, moving], truth[-1, moving], scale)
+        density_end = density_ratio(predicted[-1, moving], truth[-1, moving], scale)  # at the last step
         generator = torch.Generator().manual_seed(self.seed)
         if len(moving) > self.distribution_particles:
             moving = moving[torch.randperm(len(moving), generator=generator)[: self.distribution_particles].to(moving.device)]
@@ -307,17 +306,6 @@ class ForwardRollout:
                     max_outside=finite(outside.max() / scale),  # the farthest a particle got out of the box, in radii
                     density_end=density_end, ot=ot_values, mmd=mmd_values, steps=len(predicted),
                     stable_steps=len(predicted) if diverged is None else diverged, diverged=diverged is not None)
-
-    @staticmethod
-    def _density_ratio(predicted: Tensor, truth: Tensor, radius: float) -> float | None:
-        """Mean neighbours within ``radius`` of the moving particles, predicted over true, at one
-        frame: 1 when the simulated water keeps the solver's density, above 1 when it is
-        compressed, below when it spreads thinner. ``None`` for non-finite positions or no
-        neighbours in the truth. ``[M, D]`` each."""
-        if not bool(torch.isfinite(predicted).all()):
-            return None
-        true = mean_neighbours(truth.cpu().numpy(), radius)
-        return mean_neighbours(predicted.cpu().numpy(), radius) / true if true > 0 else None
 
     @staticmethod
     def _aggregate(per_trajectory: list[dict]) -> dict:
