@@ -10,9 +10,11 @@ from torch_geometric.data import Batch
 
 from conftest import make_metadata
 from rgns.data.contract import WATER, open_split
+from rgns.data.graph import radius_graph
 from rgns.data.windows import WindowDataset
 from rgns.models import GNS, State
 from rgns.models.base import Simulator
+from rgns.training.losses import density_error, kernel_density
 from rgns.training.module import SimulatorModule
 from rgns.training.recipes import Pushforward, Unroll
 
@@ -180,6 +182,87 @@ def test_unrolled_loss_draws_a_noise_level_per_window(tiny_dataset, monkeypatch)
     first, second = moving & (batch.batch == 0), moving & (batch.batch == 1)
     assert offset[first].max() == 0 and offset[second].max() > 1e-3
 
+
+
+def test_kernel_density_counts_each_neighbour_by_its_distance():
+    torch.manual_seed(0)
+    position, radius = torch.rand(60, 2) * 0.3, 0.08
+    rho = kernel_density(position, radius_graph(position, radius), radius)
+    distance = torch.cdist(position, position)
+    brute = ((1 - (distance / radius) ** 2).clamp(min=0) ** 3).sum(1)  # the diagonal is the 1 for itself
+    torch.testing.assert_close(rho, brute)
+    pair = torch.tensor([[0.0, 0.0], [radius, 0.0]])  # a neighbour at the radius adds nothing
+    torch.testing.assert_close(kernel_density(pair, torch.tensor([[0, 1], [1, 0]]), radius), torch.ones(2))
+
+
+def test_density_error_is_zero_on_the_truth_and_grows_with_compression():
+    xs, ys = torch.meshgrid(torch.arange(8) * 0.02, torch.arange(8) * 0.02, indexing="ij")
+    truth = torch.stack([xs.flatten(), ys.flatten()], -1) + 0.2
+    mask = torch.ones(len(truth), dtype=torch.bool)
+    errors = []
+    for squeeze in (1.0, 0.95, 0.85):
+        predicted = truth.mean(0) + squeeze * (truth - truth.mean(0))
+        pairs = torch.cat([radius_graph(predicted, 0.05), radius_graph(truth, 0.05)], 1).unique(dim=1)
+        errors.append(float(density_error(predicted, truth, pairs, 0.05, mask)))
+    assert errors[0] == 0 and 0 < errors[1] < errors[2]
+
+
+def test_density_term_adds_the_clean_frames_density_error_to_the_unrolled_loss(tiny_dataset):
+    """density_weight: each unrolled step adds the predicted positions' density error against
+    the clean true frame, weighted, and the loss has gradients through it."""
+    module = module_with(unroll={"steps": [0], "lengths": [2]})
+    plain = module_with(unroll={"steps": [0], "lengths": [2]})
+    plain.load_state_dict(module.state_dict())
+    module.hparams.density_weight = 3.0
+    for m in (module, plain):
+        m.hparams.noise_std = 0.0  # no noise: both runs see the same inputs
+    batch = windows_batch(tiny_dataset, lead=0, horizon=2)
+    terms, reference = module._losses(batch), plain._losses(batch)
+    assert "forward_density" not in reference
+    # by hand: the model's two steps from the clean window, each against its clean true frame
+    k, frames = 5, batch.frames
+    moving = batch.particle_type == WATER
+    state = State(frames[:, k], (frames[:, 1 : k + 1] - frames[:, :k]), batch.particle_type, batch.batch)
+    errors = []
+    with torch.no_grad():
+        for j in range(2):
+            state = module.model.step(state, kinematic_position=frames[:, k + j + 1])
+            truth = frames[:, k + j + 1]
+            pairs = torch.cat([module.model.graph(state.position, batch.batch),
+                               module.model.graph(truth, batch.batch)], 1).unique(dim=1)
+            errors.append(density_error(state.position, truth, pairs, module.model.radius, moving))
+    density = torch.stack(errors).mean()
+    assert density > 0
+    torch.testing.assert_close(terms["forward_density"].detach(), density, rtol=1e-4, atol=0)
+    torch.testing.assert_close(terms["forward_loss"].detach(), reference["forward_loss"].detach() + 3.0 * density,
+                               rtol=1e-4, atol=1e-7)
+    module.model.zero_grad()
+    terms["forward_density"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in module.model.parameters())
+
+
+
+def test_density_term_compares_with_the_clean_frame_under_noise(tiny_dataset, monkeypatch):
+    """With noise, the position targets move with the start frame's noise; the density term's
+    target is the clean true frame all the same."""
+    import rgns.training.module as module_code
+
+    module = module_with(unroll={"steps": [0], "lengths": [2]})
+    module.hparams.noise_std, module.hparams.density_weight = 1e-2, 1.0
+    seen = []
+    monkeypatch.setattr(module_code, "density_error",
+                        lambda predicted, target, *rest: seen.append(target) or predicted.sum() * 0)
+    batch = windows_batch(tiny_dataset, lead=0, horizon=2)
+    module._losses(batch)
+    assert len(seen) == 2
+    for j, target in enumerate(seen):
+        torch.testing.assert_close(target, batch.frames[:, 5 + j + 1], rtol=0, atol=0)
+
+def test_density_weight_needs_a_multistep_recipe():
+    with pytest.raises(ValueError, match="recipe=unroll"):
+        SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, density_weight=1.0)
+    with pytest.raises(ValueError, match="negative"):
+        SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, density_weight=-1.0, unroll={"steps": [0], "lengths": [2]})
 
 class Falling(Simulator):
     """A stand-in network that pushes particles into the floor: forward it predicts a fall,

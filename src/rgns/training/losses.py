@@ -59,3 +59,27 @@ class LossDesign:
             return x, y
         pick = torch.randperm(len(x), device=x.device)[: self.mmd_points]
         return x[pick], y[pick]
+
+
+def kernel_density(position: torch.Tensor, edge_index: torch.Tensor, radius: float) -> torch.Tensor:
+    """SPH-style number density of every particle: 1 for itself plus ``(1 - r^2/R^2)^3`` for each
+    neighbour at distance ``r < R`` along ``edge_index`` (sender -> receiver; pairs at ``R`` or
+    beyond add 0, so the density is smooth in the positions).
+
+    Shapes: position ``[N, D]``, edge_index ``[2, E]``  ->  ``[N]``"""
+    sender, receiver = edge_index
+    q = ((position[sender] - position[receiver]).pow(2).sum(-1) / radius**2).clamp(max=1.0)
+    return torch.ones(len(position), dtype=position.dtype, device=position.device).index_add(0, receiver, (1 - q).pow(3))
+
+
+def density_error(predicted: torch.Tensor, target: torch.Tensor, edge_index: torch.Tensor, radius: float,
+                  mask: torch.Tensor) -> torch.Tensor:
+    """Mean squared error of the predicted particles' :func:`kernel_density` against the target's,
+    relative to the target's mean density, over the particles in ``mask``. ``edge_index`` must
+    hold every pair within ``radius`` in either configuration (e.g. the union of their radius
+    graphs): a pair missing from it would count in neither.
+
+    Shapes: predicted, target ``[N, D]``, edge_index ``[2, E]``, mask ``[N]`` (bool)  ->  scalar"""
+    rho, reference = kernel_density(predicted, edge_index, radius), kernel_density(target, edge_index, radius)
+    scale = reference[mask].mean().detach()
+    return ((rho[mask] - reference[mask]) / scale).pow(2).mean()

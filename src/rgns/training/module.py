@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from rgns.data.contract import KINEMATIC
 from rgns.data.windows import noise_level, random_walk_noise, scale_position_noise
 from rgns.models import State
+from rgns.training.losses import density_error
 from rgns.training.recipes import Pushforward, Unroll
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
 
@@ -45,6 +46,13 @@ class SimulatorModule(L.LightningModule):
         position_correction, position_noise, noise_low: the noise variants of
             :class:`~rgns.data.windows.WindowDataset`, applied to the start frame of the
             pushforward and unrolled losses as the datamodule applies them to one-step windows.
+        density_weight: weight of a density term in the pushforward and unrolled losses: at every
+            step with gradients, the relative error of the predicted particles' kernel density
+            (:func:`~rgns.training.losses.density_error`, support the connectivity radius) against
+            the clean true frame's. Since the input is noisy and the position targets move with
+            its noise, this asks the network to restore the true density, that is to push
+            squeezed neighbourhoods apart and pull stretched ones together, and nothing else
+            (0: off; needs ``pushforward`` or ``unroll``).
         compile: run the model's network functions through ``torch.compile(dynamic=True)`` in
             training steps (:meth:`~rgns.models.base.Simulator.compile_network`); validation and
             a simulator loaded from the checkpoint run eager.
@@ -69,6 +77,7 @@ class SimulatorModule(L.LightningModule):
         position_correction: float = 0.0,
         position_noise: float = 1.0,
         noise_low: float = 1.0,
+        density_weight: float = 0.0,
         compile: bool = False,
     ):
         super().__init__()
@@ -87,6 +96,11 @@ class SimulatorModule(L.LightningModule):
         self.loss = instantiate(loss)
         self.pushforward = Pushforward(**pushforward) if pushforward else None
         self.unroll = Unroll(**unroll) if unroll else None
+        if density_weight < 0:
+            raise ValueError(f"density_weight={density_weight}: a loss weight cannot be negative")
+        if density_weight and self.pushforward is None and self.unroll is None:
+            raise ValueError("density_weight acts in the multi-step losses only: set recipe=unroll or "
+                             "recipe=pushforward with it")
 
     def setup(self, stage: str) -> None:
         if self.hparams.compile and not self.model.compiled:
@@ -145,7 +159,14 @@ class SimulatorModule(L.LightningModule):
             # change - target_change is the error of the predicted position, in acceleration units;
             # gradients reach every step through the positions and histories of the earlier ones
             target_change = (target - previous - reference) / scale
-            for key, value in self.loss(change[moving], target_change[moving], batch.batch[moving]).items():
+            terms = self.loss(change[moving], target_change[moving], batch.batch[moving])
+            if self.hparams.density_weight:
+                clean = frames[:, lead + k + j + 1]  # the true p^{t+j+1}, without the start frame's noise
+                pairs = torch.cat([self.model.graph(state.position.detach(), batch.batch),
+                                   self.model.graph(clean, batch.batch)], dim=1).unique(dim=1)
+                terms["density"] = density_error(state.position, clean, pairs, self.model.radius, moving)
+                terms["loss"] = terms["loss"] + self.hparams.density_weight * terms["density"]
+            for key, value in terms.items():
                 totals[key] = totals.get(key, 0) + value / length
         return totals
 
