@@ -52,7 +52,8 @@ class SimulatorModule(L.LightningModule):
             the clean true frame's. Since the input is noisy and the position targets move with
             its noise, this asks the network to restore the true density, that is to push
             squeezed neighbourhoods apart and pull stretched ones together, and nothing else
-            (0: off; needs ``pushforward`` or ``unroll``).
+            (0: off; needs ``pushforward`` or ``unroll``, and acts in the training steps that take
+            the multi-step path: an unrolled length above 1 or a pushforward draw above 0).
         compile: run the model's network functions through ``torch.compile(dynamic=True)`` in
             training steps (:meth:`~rgns.models.base.Simulator.compile_network`); validation and
             a simulator loaded from the checkpoint run eager.
