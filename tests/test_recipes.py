@@ -183,7 +183,6 @@ def test_unrolled_loss_draws_a_noise_level_per_window(tiny_dataset, monkeypatch)
     assert offset[first].max() == 0 and offset[second].max() > 1e-3
 
 
-
 def test_kernel_density_counts_each_neighbour_by_its_distance():
     torch.manual_seed(0)
     position, radius = torch.rand(60, 2) * 0.3, 0.08
@@ -241,7 +240,6 @@ def test_density_term_adds_the_clean_frames_density_error_to_the_unrolled_loss(t
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in module.model.parameters())
 
 
-
 def test_density_term_compares_with_the_clean_frame_under_noise(tiny_dataset, monkeypatch):
     """With noise, the position targets move with the start frame's noise; the density term's
     target is the clean true frame all the same."""
@@ -258,11 +256,13 @@ def test_density_term_compares_with_the_clean_frame_under_noise(tiny_dataset, mo
     for j, target in enumerate(seen):
         torch.testing.assert_close(target, batch.frames[:, 5 + j + 1], rtol=0, atol=0)
 
+
 def test_density_weight_needs_a_multistep_recipe():
     with pytest.raises(ValueError, match="recipe=unroll"):
         SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, density_weight=1.0)
     with pytest.raises(ValueError, match="negative"):
         SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, density_weight=-1.0, unroll={"steps": [0], "lengths": [2]})
+
 
 class Falling(Simulator):
     """A stand-in network that pushes particles into the floor: forward it predicts a fall,
