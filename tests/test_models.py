@@ -258,11 +258,13 @@ def test_gns_pairwise_decoder_conserves_momentum_away_from_the_walls(dim, edge_v
         GNS(metadata(dim), decoder="edge", **SMALL)
 
 
-@pytest.mark.parametrize("dim", [2, 3])
-def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_directions(dim):
+@pytest.mark.parametrize("dim, density_condition", [(2, False), (3, False), (2, True)])
+def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_directions(dim, density_condition):
     """couplings="pairwise": the velocities' sum over the particles changes by gravity alone,
-    forward and backward in time, where no particle is within R of a wall; not so near a wall."""
-    model = RGNS(gravity_metadata(dim), latent=16, layers=3, basis="differences", couplings="pairwise").double()
+    forward and backward in time, where no particle is within R of a wall; not so near a wall.
+    The density condition (symmetric in the pair's ends) keeps it so."""
+    model = RGNS(gravity_metadata(dim), latent=16, layers=3, basis="differences", couplings="pairwise",
+                 density_condition=density_condition).double()
     assert model.known_gravity  # implied
     perturb(model, seed=dim)
     state = random_state(dim=dim, seed=dim, kinematic=0)
@@ -291,6 +293,36 @@ def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_d
     assert torch.equal(back.velocity_history[:, 1:], state.velocity_history[:, 1:])
     with pytest.raises(ValueError, match="couplings"):
         RGNS(gravity_metadata(dim), couplings="edges", **SMALL)
+
+
+def test_density_condition_starts_as_the_network_without_it_then_reads_each_ends_density():
+    """The density map starts at zero: with the weights of a model without it, the same steps.
+    Moved off zero, the step changes, and the edge latent moves by the map of both ends' kernel
+    densities, counted here by hand."""
+    plain = RGNS(gravity_metadata(2), couplings="pairwise", **SMALL).double()
+    perturb(plain, seed=5)
+    dense = RGNS(gravity_metadata(2), couplings="pairwise", density_condition=True, **SMALL).double()
+    missing, unexpected = dense.load_state_dict(plain.state_dict(), strict=False)
+    assert set(missing) == dense.warm_start_optional() == {"density_encoder.weight"} and not unexpected
+    assert plain.warm_start_optional() == set()
+    state = random_state(kinematic=0)
+    position, history, types = state.position.double(), state.velocity_history.double(), state.particle_type
+    graph = radius_graph(position, plain.radius)
+    before = plain.next_velocity(position, history, types, graph)
+    torch.testing.assert_close(dense.next_velocity(position, history, types, graph), before, rtol=0, atol=0)
+    with torch.no_grad():
+        dense.density_encoder.weight.normal_(generator=torch.Generator().manual_seed(6))
+    after = dense.next_velocity(position, history, types, graph)
+    assert (after - before).abs().max() > 1e-3 * (before - history[:, -1]).abs().max()
+    # the edge latent moves by the map of [density of the receiver, density of the sender], each less its own 1
+    edge_latent, _ = dense.conditions(position, types, graph)
+    plain_latent, _ = plain.conditions(position, types, graph)
+    sender, receiver = graph
+    count = torch.zeros(len(position), dtype=torch.float64)
+    for j, i in graph.T.tolist():  # by hand: (1 - r^2/R^2)^3 per neighbour
+        count[i] += (1 - (position[j] - position[i]).pow(2).sum() / plain.radius**2) ** 3
+    shift = torch.stack([count[receiver], count[sender]], dim=-1) @ dense.density_encoder.weight.T
+    torch.testing.assert_close(edge_latent - plain_latent, shift)
 
 
 def test_gns_pairwise_decoder_is_psi_on_the_edge_less_psi_on_its_reverse():

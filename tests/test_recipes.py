@@ -10,11 +10,11 @@ from torch_geometric.data import Batch
 
 from conftest import make_metadata
 from rgns.data.contract import WATER, open_split
-from rgns.data.graph import radius_graph
+from rgns.data.graph import kernel_density, radius_graph
 from rgns.data.windows import WindowDataset
 from rgns.models import GNS, State
 from rgns.models.base import Simulator
-from rgns.training.losses import density_error, kernel_density
+from rgns.training.losses import density_error
 from rgns.training.module import SimulatorModule
 from rgns.training.recipes import Pushforward, Unroll
 

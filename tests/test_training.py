@@ -14,6 +14,9 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from conftest import make_metadata
+from rgns.training.module import CheckpointError, SimulatorModule, warm_start
+
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["model.latent=16", "model.layers=2", "data.num_workers=0", "trainer.log_every_n_steps=1"]
 EMA = ("+callbacks.ema={_target_: lightning.pytorch.callbacks.WeightAveraging, "  # weight averaging, fast
@@ -172,6 +175,34 @@ def test_init_from_starts_a_new_run_from_a_checkpoints_weights(dataset, tmp_path
     both = train(tmp_path, *common, "trainer.max_steps=3", f"init_from={first}", f"resume={first}",
                  f"hydra.run.dir={tmp_path / 'fourth'}", check=False)
     assert both.returncode != 0 and "init_from and resume both set" in both.stderr
+
+
+def test_warm_start_fills_only_the_parameters_an_option_starts_at_zero(tmp_path):
+    """A checkpoint without the density condition warm-starts a model with it (that map keeps its
+    zeros, the rest is the checkpoint's); a checkpoint lacking any other weight is refused."""
+    def module(density: bool) -> SimulatorModule:
+        model = {"_target_": "rgns.models.RGNS", "latent": 16, "layers": 2, "couplings": "pairwise",
+                 "density_condition": density}
+        return SimulatorModule(model, dict(make_metadata(), gravity=[0.0, -9.81]),
+                               {"_target_": "rgns.training.losses.LossDesign", "name": "DL4"},
+                               {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3})
+
+    source = module(False)
+    with torch.no_grad():
+        for parameter in source.parameters():
+            parameter.add_(0.1)
+    torch.save({"state_dict": source.state_dict()}, tmp_path / "plain.ckpt")
+    target = module(True)
+    warm_start(target, str(tmp_path / "plain.ckpt"))
+    loaded = target.state_dict()
+    assert torch.equal(loaded["model.density_encoder.weight"], torch.zeros(16, 2))
+    for name, value in source.state_dict().items():
+        assert torch.equal(loaded[name], value), name
+    state = source.state_dict()
+    del state["model.edge_encoder.0.weight"]
+    torch.save({"state_dict": state}, tmp_path / "short.ckpt")
+    with pytest.raises(CheckpointError, match="short.ckpt: its weights do not fit"):
+        warm_start(module(True), str(tmp_path / "short.ckpt"))
 
 
 def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(dataset, tmp_path):

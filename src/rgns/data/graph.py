@@ -60,6 +60,17 @@ def edge_features(position: torch.Tensor, edge_index: torch.Tensor, radius: floa
     return torch.cat([displacement, distance, relative, closing], dim=-1)
 
 
+def kernel_density(position: torch.Tensor, edge_index: torch.Tensor, radius: float) -> torch.Tensor:
+    """SPH-style number density of every particle: 1 for itself plus ``(1 - r^2/R^2)^3`` for each
+    neighbour at distance ``r < R`` along ``edge_index`` (sender -> receiver; pairs at ``R`` or
+    beyond add 0, so the density is smooth in the positions).
+
+    Shapes: position ``[N, D]``, edge_index ``[2, E]``  ->  ``[N]``"""
+    sender, receiver = edge_index
+    q = ((position[sender] - position[receiver]).pow(2).sum(-1) / radius**2).clamp(max=1.0)
+    return torch.ones(len(position), dtype=position.dtype, device=position.device).index_add(0, receiver, (1 - q).pow(3))
+
+
 def reverse_edges(edge_index: torch.Tensor, num_nodes: int) -> torch.Tensor:
     """For every edge j -> i the index of its reverse i -> j, in a graph that holds both
     directions of every pair (as :func:`radius_graph` builds it).

@@ -105,6 +105,12 @@ class Simulator(nn.Module):
         """Width of :meth:`node_conditions`: type embedding and two wall distances per axis."""
         return self.type_embedding.embedding_dim + 2 * self.dim
 
+    def warm_start_optional(self) -> set[str]:
+        """Names of parameters (as in :meth:`state_dict`) that a warm start (``init_from``) may
+        find missing in its checkpoint: those of an option that starts as a no-op (zero
+        initialised), so the network with the checkpoint's weights computes what it computed."""
+        return set()
+
     def node_conditions(self, position: Tensor, particle_type: Tensor) -> Tensor:
         """Static node inputs: distance to the walls over R, clipped to [-1, 1], and the type embedding.
 

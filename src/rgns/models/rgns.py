@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
-from rgns.data.graph import edge_channels, edge_features
+from rgns.data.graph import edge_channels, edge_features, kernel_density
 from rgns.models.base import Simulator, dataset_gravity
 from rgns.nn import ILP, RRMP, MLPEncoderDecoder, mlp
 
@@ -60,6 +60,15 @@ class RGNS(Simulator):
             with pair terms that cancel, a body could not otherwise fall. Still exactly
             invertible: a coupling may be any function of the other half and the conditions.
             (default: ``"node"``)
+        density_condition (bool, optional): the edge latent also reads the kernel density
+            (:func:`~rgns.data.graph.kernel_density`, less the particle's own 1: 0 alone, about 4
+            in the bulk of the default scene) of both ends in ``p^t``, through a linear map that
+            starts at zero. Antisymmetrised pair terms cannot sum a particle's neighbours into a
+            density, so without it a pairwise model's pressure can only be a pair force of the
+            distance; with it a pair term can be SPH's (a function of both densities times the
+            kernel's gradient). The density is a condition of ``p^t``, shared by both directions,
+            so the inverse stays exact. A checkpoint without it warm-starts this model
+            (:meth:`warm_start_optional`). (default: :obj:`False`)
     """
 
     display_name = "R-GNS"
@@ -69,7 +78,7 @@ class RGNS(Simulator):
                  layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
                  edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, node_norm: bool = True,
                  embedding: int = 16, hard_walls: bool = False, basis: str = "velocity", known_gravity: bool = False,
-                 edge_velocity: bool = False, couplings: str = "node"):
+                 edge_velocity: bool = False, couplings: str = "node", density_condition: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         if couplings not in ("node", "pairwise"):
             raise ValueError(f"couplings must be 'node' or 'pairwise', got {couplings!r}")
@@ -92,6 +101,10 @@ class RGNS(Simulator):
             raise ValueError(f"encoder must be 'ilp' or 'mlp', got {encoder!r}")
         # edge latent: geometry of the edge and the conditions of both ends, encoded once per step
         self.edge_encoder = mlp(edge_channels(self.dim, self.edge_velocity) + 2 * self.condition_channels, latent, latent, hidden_layers)
+        self.density_condition = bool(density_condition)
+        if self.density_condition:  # [receiver's, sender's] density -> a shift of the edge latent, zero at first
+            self.density_encoder = nn.Linear(2, latent, bias=False)
+            nn.init.zeros_(self.density_encoder.weight)
         self.processor = RRMP(latent, layers, self.condition_channels, hidden, hidden_layers, edges,
                               memory_saving, zero_init, node_norm, pairwise=couplings == "pairwise",
                               wall_channels=2 * self.dim)  # node_conditions: the wall distances first
@@ -114,7 +127,15 @@ class RGNS(Simulator):
         geometry = edge_features(position, edge_index, self.radius, velocity if self.edge_velocity else None,
                                  self.vel_std_noisy)  # [E, D + 1 (+ D + 1)]
         edges = torch.cat([geometry, condition[receiver], condition[sender]], dim=-1)
-        return self.edge_encoder(edges), condition
+        edge_latent = self.edge_encoder(edges)  # [E, C]
+        if self.density_condition:
+            density = kernel_density(position, edge_index, self.radius) - 1  # [N]: the neighbours' share
+            edge_latent = edge_latent + self.density_encoder(torch.stack([density[receiver], density[sender]], dim=-1))
+        return edge_latent, condition
+
+    def warm_start_optional(self) -> set[str]:
+        """See :meth:`~rgns.models.base.Simulator.warm_start_optional`: the density condition's map."""
+        return {"density_encoder.weight"} if self.density_condition else set()
 
     def to_basis(self, velocity_history: Tensor) -> Tensor:
         """Physical ``V [N, k, D]`` -> the node features ``[N, k, D]`` the ILP reads.

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from rgns.data.graph import kernel_density
+
 
 def gaussian_mmd(x: torch.Tensor, y: torch.Tensor, bandwidths: tuple[float, ...] = (0.5, 1.0, 2.0)) -> torch.Tensor:
     """Squared maximum mean discrepancy between samples x ``[n, d]`` and y ``[m, d]``,
@@ -61,20 +63,9 @@ class LossDesign:
         return x[pick], y[pick]
 
 
-def kernel_density(position: torch.Tensor, edge_index: torch.Tensor, radius: float) -> torch.Tensor:
-    """SPH-style number density of every particle: 1 for itself plus ``(1 - r^2/R^2)^3`` for each
-    neighbour at distance ``r < R`` along ``edge_index`` (sender -> receiver; pairs at ``R`` or
-    beyond add 0, so the density is smooth in the positions).
-
-    Shapes: position ``[N, D]``, edge_index ``[2, E]``  ->  ``[N]``"""
-    sender, receiver = edge_index
-    q = ((position[sender] - position[receiver]).pow(2).sum(-1) / radius**2).clamp(max=1.0)
-    return torch.ones(len(position), dtype=position.dtype, device=position.device).index_add(0, receiver, (1 - q).pow(3))
-
-
 def density_error(predicted: torch.Tensor, target: torch.Tensor, edge_index: torch.Tensor, radius: float,
                   mask: torch.Tensor) -> torch.Tensor:
-    """Mean squared error of the predicted particles' :func:`kernel_density` against the target's,
+    """Mean squared error of the predicted particles' :func:`~rgns.data.graph.kernel_density` against the target's,
     relative to the target's mean density, over the particles in ``mask``. ``edge_index`` must
     hold every pair within ``radius`` in either configuration (e.g. the union of their radius
     graphs): a pair missing from it would count in neither.

@@ -339,8 +339,13 @@ def warm_start(module: SimulatorModule, path: str) -> None:
     checkpoint's weights are the averaged ones, which is what its validation scored.
 
     Raises :class:`CheckpointError` naming the file when it is not a readable rgns checkpoint or
-    its network does not fit the module's (another model, width or depth)."""
+    its network does not fit the module's (another model, width or depth). Parameters the model
+    lists in ``warm_start_optional`` (an option that starts as a no-op) keep their initial values
+    when the checkpoint lacks them."""
     state = _read_checkpoint(path, "checkpoint to start from (init_from)")["state_dict"]
+    own = module.state_dict()
+    optional = {f"model.{name}" for name in module.model.warm_start_optional()}
+    state = {**{name: own[name] for name in optional if name not in state}, **state}
     try:
         module.load_state_dict(state)
     except RuntimeError as err:
