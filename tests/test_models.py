@@ -7,7 +7,7 @@ import torch
 from torch_geometric.data import Batch, Data
 
 from rgns.data.contract import KINEMATIC, WATER
-from rgns.data.graph import edge_channels, edge_features, radius_graph, reverse_edges, wall_distance, wall_gate
+from rgns.data.graph import edge_channels, edge_features, edge_union, radius_graph, reverse_edges, wall_distance, wall_gate
 from rgns.models import GNS, RGNS, SepGNS, State, count_parameters
 
 torch.set_num_threads(1)
@@ -362,6 +362,16 @@ def test_reverse_edges_pairs_every_edge_with_its_reverse():
     assert torch.equal(edge_index[:, reverse], edge_index.flip(0))
     with pytest.raises(ValueError, match="reverse"):
         reverse_edges(edge_index[:, 1:], 80)  # one edge lost its partner
+
+
+def test_edge_union_holds_each_edge_of_either_graph_once_in_sorted_order():
+    before = random_state(seed=3).position
+    after = before + 0.02 * torch.randn(before.shape, generator=torch.Generator().manual_seed(4))
+    first, second = radius_graph(before, 0.1), radius_graph(after, 0.1)
+    union = edge_union(first, second, len(before))
+    assert torch.equal(union, torch.cat([first, second], dim=1).unique(dim=1))
+    assert first.size(1) < union.size(1) < first.size(1) + second.size(1)  # shared edges, and edges of one only
+    assert torch.equal(edge_union(first, first, len(before)), first.unique(dim=1))
 
 
 @pytest.mark.parametrize("dim", [2, 3])

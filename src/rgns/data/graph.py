@@ -71,6 +71,19 @@ def kernel_density(position: torch.Tensor, edge_index: torch.Tensor, radius: flo
     return torch.ones(len(position), dtype=position.dtype, device=position.device).index_add(0, receiver, (1 - q).pow(3))
 
 
+def edge_union(first: torch.Tensor, second: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """Every edge of ``first`` or ``second`` once, sorted by sender then receiver (what
+    ``torch.cat([first, second], 1).unique(dim=1)`` gives, through one-dimensional keys: an order of
+    magnitude faster on a CPU).
+
+    Shapes:
+        first: ``[2, E1]``, second: ``[2, E2]``  ->  ``[2, E]`` (int64)
+    """
+    both = torch.cat([first, second], dim=1)
+    key = torch.unique(both[0] * num_nodes + both[1])  # [E]
+    return torch.stack([key // num_nodes, key % num_nodes])
+
+
 def reverse_edges(edge_index: torch.Tensor, num_nodes: int) -> torch.Tensor:
     """For every edge j -> i the index of its reverse i -> j, in a graph that holds both
     directions of every pair (as :func:`radius_graph` builds it).

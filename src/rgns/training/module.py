@@ -13,6 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from rgns.data.contract import KINEMATIC
+from rgns.data.graph import edge_union
 from rgns.data.windows import noise_level, random_walk_noise, scale_position_noise
 from rgns.models import State
 from rgns.training.losses import density_error
@@ -163,8 +164,8 @@ class SimulatorModule(L.LightningModule):
             terms = self.loss(change[moving], target_change[moving], batch.batch[moving])
             if self.hparams.density_weight:
                 clean = frames[:, lead + k + j + 1]  # the true p^{t+j+1}, without the start frame's noise
-                pairs = torch.cat([self.model.graph(state.position.detach(), batch.batch),
-                                   self.model.graph(clean, batch.batch)], dim=1).unique(dim=1)
+                pairs = edge_union(self.model.graph(state.position.detach(), batch.batch),
+                                   self.model.graph(clean, batch.batch), len(clean))
                 terms["density"] = density_error(state.position, clean, pairs, self.model.radius, moving)
                 terms["loss"] = terms["loss"] + self.hparams.density_weight * terms["density"]
             for key, value in terms.items():
