@@ -19,15 +19,21 @@ windows, one thread, median of repeats, beside the step as it was before (R-GNS'
 backward, a per-parameter Adam), timed in alternation; the ratio is the speed-up. With
 ``--compile`` the step beside it is the same model with ``module.compile=true``
 (``torch.compile(dynamic=True)`` of the network), and the time its first steps took to compile
-is printed too.
+is printed too. With ``--density-union`` it measures R-GNS 64x2's unrolled step with the density
+term (``recipe=unroll``, six steps, ``density_weight=10``) beside the same step with the union of
+the two radius graphs built as it was before :func:`~rgns.data.graph.edge_union`
+(``torch.cat(...).unique(dim=1)``).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
+from unittest import mock
 
 import lightning as L
 import numpy as np
@@ -74,15 +80,25 @@ class StepTimer(L.Callback):
 MAIN_OVERRIDES = {"rgns": ["model.memory_saving=false", "model.couplings=pairwise"],
                   "gns": ["model.layers=4", "model.decoder=pairwise"], "sep_gns": ["model.layers=4", "model.decoder=pairwise"]}
 BEFORE = {"rgns": ["model.memory_saving=true"]}
+# --density-union: the unrolled stage with the density term, as docs/pretrained.md trains it
+DENSITY = ["recipe=unroll", "module.unroll.steps=[0]", "module.unroll.lengths=[6]", "data.horizon=6",
+           "density_weight=10", "model.latent=64"]
 
 
-def main_preset(models: list[str], steps: int, overrides: list[str], compiled: bool = False) -> dict:
+def union_by_unique(first: torch.Tensor, second: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """The density term's graph union as it was built before :func:`~rgns.data.graph.edge_union`."""
+    return torch.cat([first, second], dim=1).unique(dim=1)
+
+
+def main_preset(models: list[str], steps: int, overrides: list[str], compiled: bool = False,
+                density_union: bool = False) -> dict:
     """Bare training steps per second of the main preset's models on its dataset, as
     ``scripts/main.sh`` trains them (its overrides, the configured fused Adam) and, beside it,
     as they were before (R-GNS's memory-saving backward, a per-parameter Adam) or, with
     ``compiled``, with ``module.compile=true``; the two timed in alternation on the same batches
     so that the ratio is measured side by side. The first 5 steps of each are warm-up (for the
-    compiled one: its compilation, timed as ``compile_s``)."""
+    compiled one: its compilation, timed as ``compile_s``). With ``density_union`` the step
+    beside it is the same configuration with :func:`union_by_unique` in the density term."""
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
@@ -92,7 +108,8 @@ def main_preset(models: list[str], steps: int, overrides: list[str], compiled: b
     warmup = 5
     result = {}
     for name in models:
-        other = ["module.compile=true"] if compiled else [*BEFORE.get(name, []), "module.optimizer.fused=false"]
+        other = (["module.compile=true"] if compiled else [] if density_union
+                 else [*BEFORE.get(name, []), "module.optimizer.fused=false"])
         label = "compiled" if compiled else "before"
         variants = {}
         for variant, extra in (("main", []), (label, other)):
@@ -109,14 +126,18 @@ def main_preset(models: list[str], steps: int, overrides: list[str], compiled: b
             module = instantiate(cfg.module, model=cfg.model, loss=cfg.loss, metadata=datamodule.metadata,
                                  _recursive_=False)
             module.setup("fit")  # where module.compile takes effect
+            module._trainer = SimpleNamespace(datamodule=datamodule, global_step=0)  # what a multi-step loss reads
             variants[variant] = (module, instantiate(cfg.module.optimizer)(module.parameters()), [])
         warm = dict.fromkeys(variants, 0.0)
         for i, batch in enumerate(batches):  # alternate: both variants see the same load
             for variant, (module, optimizer, times) in variants.items():
+                before_union = density_union and variant == label
+                patch = mock.patch("rgns.training.module.edge_union", union_by_unique) if before_union else None
                 start = time.perf_counter()
-                optimizer.zero_grad(set_to_none=True)
-                module._losses(batch)["loss"].backward()
-                optimizer.step()
+                with patch or contextlib.nullcontext():
+                    optimizer.zero_grad(set_to_none=True)
+                    module._losses(batch)["loss"].backward()
+                    optimizer.step()
                 if i >= warmup:
                     times.append(time.perf_counter() - start)
                 else:
@@ -144,6 +165,9 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--main", action="store_true", help="the main preset's models on its dataset instead")
     parser.add_argument("--compile", action="store_true",
                         help="with --main: beside each step, the same model with module.compile=true")
+    parser.add_argument("--density-union", action="store_true",
+                        help="with --main: R-GNS 64x2's unrolled step with the density term, beside it the "
+                             "graph union as it was (torch.unique(dim=1))")
     parser.add_argument("--models", nargs="+", default=["rgns", "gns", "sep_gns"])
     parser.add_argument("--particles", type=int, default=1000)
     parser.add_argument("--latent", type=int, default=64)
@@ -152,7 +176,10 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     if args.main:
-        result = main_preset(args.models, args.steps, [], compiled=args.compile)
+        if args.density_union:
+            result = main_preset(["rgns"], args.steps, DENSITY, density_union=True)
+        else:
+            result = main_preset(args.models, args.steps, [], compiled=args.compile)
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(result, indent=2) + "\n")
