@@ -264,6 +264,28 @@ def test_density_weight_needs_a_multistep_recipe():
         SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, density_weight=-1.0, unroll={"steps": [0], "lengths": [2]})
 
 
+def test_wall_gradient_through_keeps_the_clamped_step_and_passes_the_unclamped_gradient():
+    """A particle 0.5 mm above the floor moving 2 mm down stops at the floor either way; with
+    "stop" its step has no gradient along the clamped axis, with "through" the unclamped step's."""
+    position = torch.tensor([[0.5, 0.1005], [0.5, 0.5]])
+    velocity = torch.tensor([[0.001, -0.002], [0.0, 0.001]])
+    module = SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, wall_gradient="through")
+    assert module.model.wall_gradient == "through"
+    steps, grads = {}, {}
+    for mode in ("stop", "through"):
+        module.model.wall_gradient = mode
+        v = velocity.clone().requires_grad_()
+        steps[mode] = module.model.stop_at_walls(position, v)
+        (steps[mode] * torch.tensor([[2.0, 3.0], [5.0, 7.0]])).sum().backward()
+        grads[mode] = v.grad
+    torch.testing.assert_close(steps["stop"], torch.tensor([[0.001, -0.0005], [0.0, 0.001]]))
+    assert torch.equal(steps["through"], steps["stop"])
+    assert torch.equal(grads["stop"], torch.tensor([[2.0, 0.0], [5.0, 7.0]]))
+    assert torch.equal(grads["through"], torch.tensor([[2.0, 3.0], [5.0, 7.0]]))
+    with pytest.raises(ValueError, match="wall_gradient"):
+        SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, wall_gradient="sideways")
+
+
 class Falling(Simulator):
     """A stand-in network that pushes particles into the floor: forward it predicts a fall,
     backward an earlier frame below the floor."""

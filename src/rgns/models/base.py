@@ -75,7 +75,15 @@ class Simulator(nn.Module):
             wall is zero). Training targets are untouched; only rollouts see the wall. Near a wall
             it breaks the exact inverse of the network for the particles it stops.
             (default: :obj:`False`)
+
+    :attr:`wall_gradient` says how gradients cross that wall in the steps of a multi-step loss:
+    ``"stop"`` (the clamp's own: none along a clamped coordinate, so a rollout that pushes water
+    into the floor is not told so) or ``"through"`` (straight-through: the step's value is the
+    clamped one, its gradient the unclamped step's). Rollouts without gradients are the same
+    either way. The training module sets it (``wall_gradient`` in ``conf/train.yaml``).
     """
+
+    wall_gradient: str = "stop"
 
     bidirectional: bool = False
     display_name: str = ""  # the name reports give the model (``describe``); empty: the class name
@@ -194,8 +202,12 @@ class Simulator(nn.Module):
     # ---- the physical loops -------------------------------------------------------------------
 
     def stop_at_walls(self, position: Tensor, velocity: Tensor) -> Tensor:
-        """The velocity that takes ``position`` to ``position + velocity`` clamped into the box. ``[N, D]``"""
-        return (position + velocity).clamp(self.bounds[:, 0], self.bounds[:, 1]) - position
+        """The velocity that takes ``position`` to ``position + velocity`` clamped into the box,
+        with the gradient :attr:`wall_gradient` says. ``[N, D]``"""
+        stopped = (position + velocity).clamp(self.bounds[:, 0], self.bounds[:, 1]) - position
+        if self.wall_gradient == "through":
+            return velocity + (stopped - velocity).detach()
+        return stopped
 
     def graph(self, position: Tensor, batch: Tensor | None = None) -> Tensor:
         """Radius graph of ``position`` (scipy on the CPU), on the model's device.  ``[2, E]``"""

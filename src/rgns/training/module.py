@@ -55,6 +55,8 @@ class SimulatorModule(L.LightningModule):
             squeezed neighbourhoods apart and pull stretched ones together, and nothing else
             (0: off; needs ``pushforward`` or ``unroll``, and acts in the training steps that take
             the multi-step path: an unrolled length above 1 or a pushforward draw above 0).
+        wall_gradient: ``"stop"`` or ``"through"``: how the gradients of those losses cross the
+            model's hard walls (:attr:`~rgns.models.base.Simulator.wall_gradient`).
         compile: run the model's network functions through ``torch.compile(dynamic=True)`` in
             training steps (:meth:`~rgns.models.base.Simulator.compile_network`); validation and
             a simulator loaded from the checkpoint run eager.
@@ -80,6 +82,7 @@ class SimulatorModule(L.LightningModule):
         position_noise: float = 1.0,
         noise_low: float = 1.0,
         density_weight: float = 0.0,
+        wall_gradient: str = "stop",
         compile: bool = False,
     ):
         super().__init__()
@@ -95,6 +98,9 @@ class SimulatorModule(L.LightningModule):
         # which a recursive instantiate would build, Taichi and all) and no model config nests a target
         self.model = instantiate(model, metadata=metadata, history=history, noise_std=noise_std, _recursive_=False)
         self.train_inverse = bool(train_inverse) and self.model.bidirectional
+        if wall_gradient not in ("stop", "through"):
+            raise ValueError(f"wall_gradient must be 'stop' or 'through', got {wall_gradient!r}")
+        self.model.wall_gradient = wall_gradient
         self.loss = instantiate(loss)
         self.pushforward = Pushforward(**pushforward) if pushforward else None
         self.unroll = Unroll(**unroll) if unroll else None
