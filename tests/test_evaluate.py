@@ -25,6 +25,7 @@ from rgns.evaluation.baselines import Ballistic, ConstantVelocity
 from rgns.evaluation.methods import Method, _disambiguate, describe, find_checkpoints
 from rgns.evaluation.metrics import density_ratio
 from rgns.evaluation.rest import settled_pool
+from rgns.evaluation.walls import at_the_walls
 from rgns.evaluation.run import evaluate
 from rgns.evaluation.tasks import Dataset, ForwardRollout, InverseConsistency, in_parallel
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
@@ -115,6 +116,27 @@ def test_settled_pool_finds_a_simulator_that_squeezes_the_water():
     assert squeezed["truth"]["rms_displacement"] == pytest.approx(expected, rel=1e-4)  # the same contraction
     with pytest.raises(ValueError, match="too short"):
         settled_pool(model, shrinking[:8], types, steps, radius)
+
+
+def test_at_the_walls_finds_water_pushed_into_the_floor():
+    """A row of particles falls at constant speed and the truth stops it 1 mm above the floor;
+    constant velocity carries it on into the floor, where the hard wall stops it: the closest
+    approach, the share near the wall and the heights tell them apart, and the error, a uniform
+    offset of every particle, is all the centre of mass's."""
+    metadata = make_metadata(frames=30)  # box [0.1, 0.9] on both axes
+    x = 0.3 + 0.01 * torch.arange(10.0)
+    height = (0.2 - 0.005 * torch.arange(30.0)).clamp(min=0.101)  # 0.5 cm a frame down to 1 mm above the floor
+    truth = torch.stack([x.expand(30, -1), height[:, None].expand(-1, 10)], dim=-1)  # [30, 10, 2]
+    model, types = ConstantVelocity(metadata), torch.full((10,), WATER)
+    model.hard_walls = True
+    rows = at_the_walls(model, truth, types, start=5, steps=[0, 20, 40], near=0.0005)
+    assert [row["step"] for row in rows] == [0, 20]  # step 40 is past the trajectory's end
+    first, late = rows
+    assert first["error"] == pytest.approx(0.0, abs=1e-12) and first["model"]["closest"] == pytest.approx(0.07, abs=1e-6)
+    assert late["truth"]["closest"] == pytest.approx(0.001, abs=1e-6) and late["truth"]["near_fraction"] == 0.0
+    assert late["model"]["closest"] == 0.0 and late["model"]["near_fraction"] == 1.0
+    assert late["model"]["height"] == pytest.approx(0.0) and late["truth"]["height"] == pytest.approx(0.001, abs=1e-6)
+    assert late["error"] == pytest.approx(1e-6, rel=1e-3) and late["centre_share"] == pytest.approx(1.0, rel=1e-4)
 
 
 def pid_after(job: int) -> tuple[int, int]:
@@ -351,6 +373,19 @@ def test_rest_diagnostic_runs_on_a_checkpoint(trained, tmp_path):
     assert all(row["model"]["rms_displacement"] > 0 for row in result["trajectories"])  # random data is not at rest
     with pytest.raises(SystemExit):
         rest([str(checkpoint), "--steps", "0"])
+
+
+def test_walls_diagnostic_runs_on_a_checkpoint(trained, tmp_path):
+    from rgns.evaluation.walls import main as walls
+
+    checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
+    result = walls([str(checkpoint), "--steps", "2", "4", "--trajectories", "2", "--json", str(tmp_path / "walls.json"),
+                    "--figure", str(tmp_path / "walls.png"), "--figure-steps", "1", "3"])
+    assert [len(rows) for rows in result["trajectories"]] == [2, 2] and result["hard_walls"]
+    assert json.loads((tmp_path / "walls.json").read_text())["summary"].keys() == {"2", "4"}
+    assert Image.open(tmp_path / "walls.png").size[0] > 0
+    with pytest.raises(SystemExit):
+        walls([str(checkpoint), "--near", "0"])
 
 
 def test_evaluate_goal_task_writes_figure_gif_and_matching_table(trained, tmp_path):
