@@ -6,8 +6,9 @@ where a hard wall (``model.hard_walls``) stops them: a dense layer on the floor 
 never has, and lost energy. This diagnostic rolls the simulator out from the forward task's start
 frame of each trajectory and reports, at the chosen steps, beside the truth at the same frames:
 
-- the closest any moving particle comes to a wall, and how many come within ``--near`` (a
-  fraction of the connectivity radius) of one;
+- the closest any moving particle comes to a wall (negative: outside the box, without hard
+  walls), and how many come within ``--near`` (a fraction of the connectivity radius) of one or
+  beyond it;
 - the mean height above the floor (the lower wall of the last axis);
 - the rollout's error (mean over the particles of the squared distance, summed over the axes) and
   the share of it that is the centre of mass's (the bulk in the wrong place, not the shape)::
@@ -29,8 +30,10 @@ from rgns.models import Simulator, State
 
 
 def wall_figures(position: Tensor, bounds: Tensor, near: float) -> dict[str, float]:
-    """Closest distance to a wall, the fraction of particles within ``near`` of one, and the mean
-    height above the last axis's lower wall. Shapes: position ``[M, D]``, bounds ``[D, 2]``."""
+    """Closest distance to a wall (negative outside the box), the fraction of particles within
+    ``near`` of one or beyond it, and the mean height above the last axis's lower wall.
+
+    Shapes: position ``[M, D]``, bounds ``[D, 2]``."""
     gap = torch.cat([position - bounds[:, 0], bounds[:, 1] - position], dim=-1).min(dim=-1).values  # [M]
     return dict(closest=float(gap.min()), near_fraction=float((gap < near).float().mean()),
                 height=float((position[:, -1] - bounds[-1, 0]).mean()))
