@@ -61,8 +61,8 @@ class RGNS(Simulator):
             invertible: a coupling may be any function of the other half and the conditions.
             (default: ``"node"``)
         density_condition (bool, optional): the edge latent also reads the kernel density
-            (:func:`~rgns.data.graph.kernel_density`, less the particle's own 1: 0 alone, about 4
-            in the bulk of the default scene) of both ends in ``p^t``, through a linear map that
+            (:func:`~rgns.data.graph.kernel_density`, less the particle's own 1: 0 for a particle
+            alone) of both ends in ``p^t``, through a linear map that
             starts at zero. Antisymmetrised pair terms cannot sum a particle's neighbours into a
             density, so without it a pairwise model's pressure can only be a pair force of the
             distance; with it a pair term can be SPH's (a function of both densities times the
