@@ -7,6 +7,7 @@ What the tasks use of a method: ``label``, ``trained``, ``bidirectional``, ``par
 references (:mod:`rgns.evaluation.references`) offer the same, with ``model = None``."""
 from __future__ import annotations
 
+import argparse
 import copy
 import logging
 from dataclasses import dataclass, field, replace
@@ -122,6 +123,31 @@ def check_fits(model: Simulator, source: str, metadata: dict, particle_types, wh
     if unseen:
         raise CheckpointError(f"{source}: trained on particle types {model.particle_types}, but {where} also holds "
                               f"type(s) {unseen}, which it never saw in training")
+
+
+def add_checkpoint_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments of a diagnostic of one checkpoint on one split (``python -m
+    rgns.evaluation.rest``, ``onestep``, ``walls``): the checkpoint, ``--data-root`` (default:
+    the dataset it was trained on), ``--split`` and ``--trajectories``; read by
+    :func:`load_checkpoint_on_split`."""
+    parser.add_argument("checkpoint")
+    parser.add_argument("--data-root", default=None, help="default: the dataset the checkpoint was trained on")
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--trajectories", type=int, default=8)
+
+
+def load_checkpoint_on_split(args: argparse.Namespace):
+    """``(model, root, dataset)``: the simulator of ``args.checkpoint``, the dataset folder
+    (``args.data_root`` or the one it was trained on, :func:`trained_on`) and the first
+    ``args.trajectories`` of its ``args.split``, checked to fit the model (:func:`check_fits`).
+    The arguments are :func:`add_checkpoint_arguments`'s."""
+    from rgns.evaluation.tasks import Dataset
+
+    model, extras = load_simulator(args.checkpoint)
+    root = args.data_root or trained_on(args.checkpoint, extras["data_root"], extras.get("data_root_relative"))
+    dataset = Dataset.load(root, args.split, args.trajectories, model.history, None)
+    check_fits(model, args.checkpoint, dataset.metadata, dataset.particle_types, f"{root} ({args.split})")
+    return model, root, dataset
 
 
 def describe(model_config: dict) -> str:

@@ -70,22 +70,14 @@ def by_span(trajectories: list[dict[str, Tensor]], spans=SPANS) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    from rgns.evaluation.methods import check_fits, trained_on
-    from rgns.evaluation.tasks import Dataset
-    from rgns.training.module import load_simulator
+    from rgns.evaluation.methods import add_checkpoint_arguments, load_checkpoint_on_split
 
     parser = argparse.ArgumentParser(prog="python -m rgns.evaluation.onestep", description=__doc__.split("\n\n")[0])
-    parser.add_argument("checkpoint")
-    parser.add_argument("--data-root", default=None, help="default: the dataset the checkpoint was trained on")
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--trajectories", type=int, default=8)
+    add_checkpoint_arguments(parser)
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    model, extras = load_simulator(args.checkpoint)
-    root = args.data_root or trained_on(args.checkpoint, extras["data_root"], extras.get("data_root_relative"))
-    dataset = Dataset.load(root, args.split, args.trajectories, model.history, None)
-    check_fits(model, args.checkpoint, dataset.metadata, dataset.particle_types, f"{root} ({args.split})")
+    model, root, dataset = load_checkpoint_on_split(args)
     rows = by_span([one_step_accelerations(model, p, t) for p, t in dataset.trajectories])
     print(f"{args.checkpoint}: one-step accelerations on {len(dataset.trajectories)} {args.split} trajectories of {root}")
     print(f"{'frames':<10}{'true rms':>12}{'predicted rms':>15}{'error rms':>12}{'error / true':>14}")

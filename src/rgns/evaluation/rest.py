@@ -52,25 +52,18 @@ def settled_pool(model: Simulator, position: Tensor, particle_type: Tensor, step
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from rgns.evaluation.methods import check_fits, trained_on
-    from rgns.evaluation.tasks import Dataset, mean_or_none
-    from rgns.training.module import load_simulator
+    from rgns.evaluation.methods import add_checkpoint_arguments, load_checkpoint_on_split
+    from rgns.evaluation.tasks import mean_or_none
 
     parser = argparse.ArgumentParser(prog="python -m rgns.evaluation.rest", description=__doc__.split("\n\n")[0])
-    parser.add_argument("checkpoint")
-    parser.add_argument("--data-root", default=None, help="default: the dataset the checkpoint was trained on")
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--trajectories", type=int, default=8)
+    add_checkpoint_arguments(parser)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     if args.steps < 1:
         parser.error(f"--steps {args.steps}: roll out at least 1 step")
     torch.set_num_threads(1)
-    model, extras = load_simulator(args.checkpoint)
-    root = args.data_root or trained_on(args.checkpoint, extras["data_root"], extras.get("data_root_relative"))
-    dataset = Dataset.load(root, args.split, args.trajectories, model.history, None)
-    check_fits(model, args.checkpoint, dataset.metadata, dataset.particle_types, f"{root} ({args.split})")
+    model, root, dataset = load_checkpoint_on_split(args)
     radius = float(dataset.metadata["default_connectivity_radius"])
     try:
         rows = [settled_pool(model, p, t, args.steps, radius) for p, t in dataset.trajectories]

@@ -40,19 +40,29 @@ def wall_figures(position: Tensor, bounds: Tensor, near: float) -> dict[str, flo
 
 
 @torch.no_grad()
+def rollout_from(model: Simulator, position: Tensor, particle_type: Tensor, start: int, last_step: int) -> Tensor:
+    """The simulator's rollout from frame ``start`` (its history the true frames before it,
+    kinematic particles on their true paths) to step ``last_step`` (counted from 0, the first
+    predicted frame) or the trajectory's last frame, whichever comes first.
+
+    Shapes: position ``[T, N, D]``, particle_type ``[N]``  ->  ``[S, N, D]``"""
+    horizon = min(last_step + 1, len(position) - start - 1)
+    if horizon < 1:
+        raise ValueError(f"a trajectory of {len(position)} frames has no frame after the start frame {start}")
+    state = State.from_positions(position[start - model.history : start + 1], particle_type)
+    return model.rollout(state, horizon, position[start + 1 : start + 1 + horizon])
+
+
+@torch.no_grad()
 def at_the_walls(model: Simulator, position: Tensor, particle_type: Tensor, start: int, steps: list[int],
                  near: float) -> list[dict]:
     """One row per step in ``steps`` (counted from 0, the first predicted frame, as the forward
     task's per-step errors) that the trajectory holds. Shapes: position ``[T, N, D]``, particle_type ``[N]``."""
-    k, moving = model.history, particle_type != KINEMATIC
-    horizon = min(max(steps) + 1, len(position) - start - 1)
-    if horizon < 1:
-        raise ValueError(f"a trajectory of {len(position)} frames has no frame after the start frame {start}")
-    state = State.from_positions(position[start - k : start + 1], particle_type)
-    predicted = model.rollout(state, horizon, position[start + 1 : start + 1 + horizon])  # [<= horizon, N, D]
+    moving = particle_type != KINEMATIC
+    predicted = rollout_from(model, position, particle_type, start, max(steps))
     bounds = model.bounds.to(position)
     rows = []
-    for step in (s for s in steps if s < len(predicted)):  # a rollout that collapsed stops early
+    for step in (s for s in steps if s < len(predicted)):  # steps past the trajectory's end are left out
         mine, true = predicted[step][moving], position[start + 1 + step][moving]
         error = float((mine - true).pow(2).sum(-1).mean())
         centre = float((mine.mean(0) - true.mean(0)).pow(2).sum())
@@ -71,12 +81,8 @@ def snapshot_figure(model: Simulator, position: Tensor, particle_type: Tensor, s
 
     from rgns.evaluation.plots import save_figure
 
-    k, moving = model.history, particle_type != KINEMATIC
-    horizon = min(max(steps) + 1, len(position) - start - 1)
-    steps = [s for s in steps if s < horizon]
-    with torch.no_grad():
-        predicted = model.rollout(State.from_positions(position[start - k : start + 1], particle_type), horizon,
-                                  position[start + 1 : start + 1 + horizon])
+    moving = particle_type != KINEMATIC
+    predicted = rollout_from(model, position, particle_type, start, max(steps))
     steps = [s for s in steps if s < len(predicted)]
     bounds = model.bounds.cpu().numpy()
     fig, axes = plt.subplots(2, len(steps), figsize=(2.4 * len(steps), 5.0), squeeze=False)
@@ -92,15 +98,11 @@ def snapshot_figure(model: Simulator, position: Tensor, particle_type: Tensor, s
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from rgns.evaluation.methods import check_fits, trained_on
-    from rgns.evaluation.tasks import Dataset, mean_or_none
-    from rgns.training.module import load_simulator
+    from rgns.evaluation.methods import add_checkpoint_arguments, load_checkpoint_on_split
+    from rgns.evaluation.tasks import mean_or_none
 
     parser = argparse.ArgumentParser(prog="python -m rgns.evaluation.walls", description=__doc__.split("\n\n")[0])
-    parser.add_argument("checkpoint")
-    parser.add_argument("--data-root", default=None, help="default: the dataset the checkpoint was trained on")
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--trajectories", type=int, default=8)
+    add_checkpoint_arguments(parser)
     parser.add_argument("--steps", type=int, nargs="+", default=[100, 200, 299])
     parser.add_argument("--near", type=float, default=0.05, help="'near a wall': within this fraction of the radius")
     parser.add_argument("--hard-walls", choices=("checkpoint", "on", "off"), default="on",
@@ -113,12 +115,9 @@ def main(argv: list[str] | None = None) -> dict:
     if min(args.steps) < 0 or args.near <= 0:
         parser.error("--steps count from 0 and --near must be positive")
     torch.set_num_threads(1)
-    model, extras = load_simulator(args.checkpoint)
+    model, root, dataset = load_checkpoint_on_split(args)
     if args.hard_walls != "checkpoint":
         model.hard_walls = args.hard_walls == "on"
-    root = args.data_root or trained_on(args.checkpoint, extras["data_root"], extras.get("data_root_relative"))
-    dataset = Dataset.load(root, args.split, args.trajectories, model.history, None)
-    check_fits(model, args.checkpoint, dataset.metadata, dataset.particle_types, f"{root} ({args.split})")
     near = args.near * float(dataset.metadata["default_connectivity_radius"])
     try:
         rows = [at_the_walls(model, p, t, dataset.start, args.steps, near) for p, t in dataset.trajectories]
