@@ -137,6 +137,22 @@ def test_at_the_walls_finds_water_pushed_into_the_floor():
     assert late["model"]["closest"] == 0.0 and late["model"]["near_fraction"] == 1.0
     assert late["model"]["height"] == pytest.approx(0.0) and late["truth"]["height"] == pytest.approx(0.001, abs=1e-6)
     assert late["error"] == pytest.approx(1e-6, rel=1e-3) and late["centre_share"] == pytest.approx(1.0, rel=1e-4)
+    # float32 positions: differences good to about 1e-7
+    assert first["model"]["speed"] == pytest.approx(0.005, abs=1e-7)
+    assert first["truth"]["speed"] == pytest.approx(0.005, abs=1e-7)
+    assert late["model"]["speed"] == 0.0 and late["truth"]["speed"] == 0.0  # stopped by the hard wall, and by the truth
+
+
+def test_at_the_walls_speed_is_the_rollouts_own():
+    """Speeds are each rollout's own frame differences: a model that keeps moving where the
+    truth has stopped shows its speed against the truth's zero."""
+    metadata = make_metadata(frames=30)
+    shift = 0.002 * torch.arange(30.0).clamp(max=7)  # 2 mm a frame to the right, stopped from frame 7 on
+    still = 0.5 + torch.stack([shift, torch.zeros(30)], dim=-1)[:, None, :].expand(30, 4, 2)
+    model, types = ConstantVelocity(metadata), torch.full((4,), WATER)
+    rows = at_the_walls(model, still, types, start=7, steps=[0, 10], near=0.0005)
+    for row in rows:
+        assert row["truth"]["speed"] == 0.0 and row["model"]["speed"] == pytest.approx(0.002, abs=1e-7)
 
 
 def pid_after(job: int) -> tuple[int, int]:

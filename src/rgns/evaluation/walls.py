@@ -10,6 +10,8 @@ frame of each trajectory and reports, at the chosen steps, beside the truth at t
   walls), and how many come within ``--near`` (a fraction of the connectivity radius) of one or
   beyond it;
 - the mean height above the floor (the lower wall of the last axis);
+- the rms speed per frame (water that has settled in the truth and still moves in the model, or
+  an impact that splashes harder than the truth's);
 - the rollout's error (mean over the particles of the squared distance, summed over the axes) and
   the share of it that is the centre of mass's (the bulk in the wrong place, not the shape)::
 
@@ -39,6 +41,11 @@ def wall_figures(position: Tensor, bounds: Tensor, near: float) -> dict[str, flo
                 height=float((position[:, -1] - bounds[-1, 0]).mean()))
 
 
+def rms_speed(velocity: Tensor) -> float:
+    """Root-mean-square speed of per-frame velocities ``[M, D]`` (position units per frame)."""
+    return float(velocity.pow(2).sum(-1).mean().sqrt())
+
+
 @torch.no_grad()
 def rollout_from(model: Simulator, position: Tensor, particle_type: Tensor, start: int, last_step: int) -> Tensor:
     """The simulator's rollout from frame ``start`` (its history the true frames before it,
@@ -64,10 +71,14 @@ def at_the_walls(model: Simulator, position: Tensor, particle_type: Tensor, star
     rows = []
     for step in (s for s in steps if s < len(predicted)):  # steps past the trajectory's end are left out
         mine, true = predicted[step][moving], position[start + 1 + step][moving]
+        before = (predicted[step - 1] if step > 0 else position[start])[moving]  # the frame each came from
         error = float((mine - true).pow(2).sum(-1).mean())
         centre = float((mine.mean(0) - true.mean(0)).pow(2).sum())
-        rows.append(dict(step=step, model=wall_figures(mine, bounds, near), truth=wall_figures(true, bounds, near),
-                         error=error, centre_share=centre / error if error > 0 else None))
+        model, truth = wall_figures(mine, bounds, near), wall_figures(true, bounds, near)
+        model["speed"] = rms_speed(mine - before)
+        truth["speed"] = rms_speed(true - position[start + step][moving])
+        rows.append(dict(step=step, model=model, truth=truth, error=error,
+                         centre_share=centre / error if error > 0 else None))
     return rows
 
 
@@ -138,7 +149,8 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"  step {step:>4} ({len(at)} trajectories): closest to a wall {mean['closest']['model']:.3g} (truth "
               f"{mean['closest']['truth']:.3g}); near a wall {100 * mean['model']['near_fraction']:.1f}% (truth "
               f"{100 * mean['truth']['near_fraction']:.1f}%); height {mean['model']['height']:.4f} (truth "
-              f"{mean['truth']['height']:.4f}); error {mean['error']:.3g}, centre of mass "
+              f"{mean['truth']['height']:.4f}); rms speed {mean['model']['speed']:.3g} (truth "
+              f"{mean['truth']['speed']:.3g}); error {mean['error']:.3g}, centre of mass "
               f"{100 * (mean['centre_share'] or 0):.0f}% of it")
     if args.figure:
         if not 0 <= args.figure_trajectory < len(dataset.trajectories):
