@@ -258,13 +258,16 @@ def test_gns_pairwise_decoder_conserves_momentum_away_from_the_walls(dim, edge_v
         GNS(metadata(dim), decoder="edge", **SMALL)
 
 
-@pytest.mark.parametrize("dim, density_condition", [(2, False), (3, False), (2, True)])
-def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_directions(dim, density_condition):
+@pytest.mark.parametrize("dim, density_condition, galilean", [(2, False, False), (3, False, False), (2, True, False),
+                                                               (2, False, True), (3, True, True)])
+def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_directions(dim, density_condition,
+                                                                                         galilean):
     """couplings="pairwise": the velocities' sum over the particles changes by gravity alone,
     forward and backward in time, where no particle is within R of a wall; not so near a wall.
-    The density condition (symmetric in the pair's ends) keeps it so."""
+    The density condition (symmetric in the pair's ends) and the rest frames (each pair term
+    still antisymmetrised) keep it so, and the inverse step stays exact."""
     model = RGNS(gravity_metadata(dim), latent=16, layers=3, basis="differences", couplings="pairwise",
-                 density_condition=density_condition).double()
+                 density_condition=density_condition, galilean=galilean).double()
     assert model.known_gravity  # implied
     perturb(model, seed=dim)
     state = random_state(dim=dim, seed=dim, kinematic=0)
@@ -293,6 +296,38 @@ def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_d
     assert torch.equal(back.velocity_history[:, 1:], state.velocity_history[:, 1:])
     with pytest.raises(ValueError, match="couplings"):
         RGNS(gravity_metadata(dim), couplings="edges", **SMALL)
+
+
+@pytest.mark.parametrize("dim, basis", [(2, "differences"), (3, "differences"), (2, "velocity")])
+def test_galilean_pair_terms_read_relative_motion_only(dim, basis):
+    """galilean=True: away from the walls, moving every velocity of the history by the same u moves
+    both directions' predictions by u and nothing else (to round-off); without it, or within R of
+    a wall (whose term reads the absolute velocity), it does not."""
+    state = random_state(dim=dim, seed=3, kinematic=0)
+    position, history, types = state.position.double(), state.velocity_history.double(), state.particle_type
+    inside = ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)  # farther than R from every wall
+    u = torch.linspace(2e-3, -3e-3, dim, dtype=torch.float64)  # about 2x the velocity std
+    gaps = {}
+    for galilean in (True, False):
+        model = RGNS(gravity_metadata(dim), latent=16, layers=3, basis=basis, couplings="pairwise",
+                     galilean=galilean).double()
+        perturb(model, seed=dim)
+        for name, index in (("inside", inside.nonzero().squeeze(-1)), ("all", torch.arange(len(position)))):
+            p, v, t = position[index], history[index], types[index]
+            graph = radius_graph(p, model.radius)
+            for direction in (model.next_velocity, model.oldest_velocity):
+                with torch.no_grad():
+                    plain, moved = direction(p, v, t, graph), direction(p, v + u, t, graph)
+                scale = (plain - v[:, -1]).abs().max()  # the size of the network's change
+                gaps[galilean, name, direction.__name__] = float((moved - plain - u).abs().max() / scale)
+    for direction in ("next_velocity", "oldest_velocity"):
+        assert gaps[True, "inside", direction] < 1e-10
+        assert gaps[True, "all", direction] > 1e-4  # the wall term sees the boost
+        assert gaps[False, "inside", direction] > 1e-4
+    with pytest.raises(ValueError, match="galilean"):
+        RGNS(gravity_metadata(dim), galilean=True, **SMALL)  # node couplings
+    with pytest.raises(ValueError, match="galilean"):
+        RGNS(gravity_metadata(dim), galilean=True, couplings="pairwise", encoder="mlp", **SMALL)
 
 
 def test_density_condition_starts_as_the_network_without_it_then_reads_each_ends_density():
@@ -438,7 +473,7 @@ def test_unmasked_history_round_trip_is_exact_up_to_the_ilp_projection(dim, seed
 
 
 @pytest.mark.parametrize("options", [dict(), dict(encoder="mlp"), dict(edges="updated"), dict(node_norm=False),
-                                     dict(couplings="pairwise")])
+                                     dict(couplings="pairwise"), dict(couplings="pairwise", galilean=True)])
 def test_rgns_memory_saving_gradients_equal_plain_gradients(options):
     torch.manual_seed(0)
     # float64: the memory-saving backward recomputes the inputs by inversion, which in float32
@@ -586,7 +621,8 @@ def test_a_collapsed_rollout_stops_and_repeats_its_last_frame(caplog):
 # ---- compiled networks (module.compile) ------------------------------------------------------
 
 @pytest.mark.parametrize("cls, options", [(GNS, {}), (RGNS, {}), (GNS, {"decoder": "pairwise"}),
-                                          (RGNS, {"couplings": "pairwise"})])
+                                          (RGNS, {"couplings": "pairwise"}),
+                                          (RGNS, {"couplings": "pairwise", "galilean": True})])
 def test_compiled_network_computes_what_the_eager_one_does(cls, options):
     """compile_network changes how the network runs, not what it computes: the same velocities
     and gradients on two batches of different sizes (dynamic shapes), and a copy runs eager."""

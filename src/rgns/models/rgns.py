@@ -69,6 +69,17 @@ class RGNS(Simulator):
             kernel's gradient). The density is a condition of ``p^t``, shared by both directions,
             so the inverse stays exact. A checkpoint without it warm-starts this model
             (:meth:`warm_start_optional`). (default: :obj:`False`)
+        galilean (bool, optional): with ``couplings="pairwise"`` and the ILP encoder, every pair
+            term is read in its receiver's rest frame (:class:`~rgns.nn.reversible.Coupling`,
+            :meth:`boost_frame`), so that the forces between particles depend on their relative
+            motion only: moving every particle's velocity history by the same ``u`` moves the
+            predicted velocities by ``u`` and changes nothing else, away from the walls (whose
+            term keeps the absolute velocity). Without it a pair term reads both ends' absolute
+            velocities, and a drop in free fall, whose particles all move alike, feels internal
+            forces that grow with its speed. Adds no parameters: a checkpoint without it
+            warm-starts this model (the pair terms then read other inputs at first). The inverse
+            stays exact: each coupling is still a function of the other half and the conditions.
+            (default: :obj:`False`)
     """
 
     display_name = "R-GNS"
@@ -78,7 +89,8 @@ class RGNS(Simulator):
                  layers: int = 10, hidden: int | None = None, hidden_layers: int = 2, encoder: str = "ilp",
                  edges: str = "fixed", memory_saving: bool = True, zero_init: bool = True, node_norm: bool = True,
                  embedding: int = 16, hard_walls: bool = False, basis: str = "velocity", known_gravity: bool = False,
-                 edge_velocity: bool = False, couplings: str = "node", density_condition: bool = False):
+                 edge_velocity: bool = False, couplings: str = "node", density_condition: bool = False,
+                 galilean: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         if couplings not in ("node", "pairwise"):
             raise ValueError(f"couplings must be 'node' or 'pairwise', got {couplings!r}")
@@ -105,6 +117,10 @@ class RGNS(Simulator):
         if self.density_condition:  # [receiver's, sender's] density -> a shift of the edge latent, zero at first
             self.density_encoder = nn.Linear(2, latent, bias=False)
             nn.init.zeros_(self.density_encoder.weight)
+        if galilean and (couplings != "pairwise" or encoder != "ilp"):
+            raise ValueError("galilean needs couplings='pairwise' (pair terms to read in a rest frame) and "
+                             "encoder='ilp' (a boost must move the latent along fixed directions)")
+        self.galilean = bool(galilean)
         self.processor = RRMP(latent, layers, self.condition_channels, hidden, hidden_layers, edges,
                               memory_saving, zero_init, node_norm, pairwise=couplings == "pairwise",
                               wall_channels=2 * self.dim)  # node_conditions: the wall distances first
@@ -132,6 +148,17 @@ class RGNS(Simulator):
             density = kernel_density(position, edge_index, self.radius) - 1  # [N]: the neighbours' share
             edge_latent = edge_latent + self.density_encoder(torch.stack([density[receiver], density[sender]], dim=-1))
         return edge_latent, condition
+
+    def boost_frame(self) -> Tensor | None:
+        """With ``galilean``: ``[D + 1, C]``, the D directions in which the encoded latent moves
+        when every velocity of the history moves by a unit along each axis (the ILP's image of
+        the boost through :meth:`to_basis`, which is affine), and the encoder's bias; else ``None``."""
+        if not self.galilean:
+            return None
+        weight = self.projection.weight  # [C, k D]
+        unit = torch.eye(self.dim, dtype=weight.dtype, device=weight.device)[:, None, :].expand(-1, self.history, -1)
+        moved = self.to_basis(unit) - self.to_basis(torch.zeros_like(unit))  # [D, k, D]: the affine part cancels
+        return torch.cat([nn.functional.linear(moved.flatten(1), weight), self.projection.bias[None]])  # [D + 1, C]
 
     def warm_start_optional(self) -> set[str]:
         """See :meth:`~rgns.models.base.Simulator.warm_start_optional`: the density condition's map."""
@@ -168,7 +195,7 @@ class RGNS(Simulator):
                         edge_index: Tensor) -> Tensor:
         """The unmasked forward output: ``V^t [N, k, D] -> decode(RRMP(encode(V^t))) (+ g) [N, k, D]``."""
         edge_attr, condition = self.conditions(position, particle_type, edge_index, velocity_history[:, -1])  # v^t
-        latent = self.processor(self.encode(velocity_history), edge_index, edge_attr, condition)
+        latent = self.processor(self.encode(velocity_history), edge_index, edge_attr, condition, self.boost_frame())
         return self.decode(latent) + self.gravity_shift
 
     def inverse_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
@@ -176,7 +203,7 @@ class RGNS(Simulator):
         """The unmasked inverse output: ``V^{t+1} [N, k, D] -> decode(RRMP^{-1}(encode(V^{t+1} (- g)))) [N, k, D]``."""
         edge_attr, condition = self.conditions(position, particle_type, edge_index, velocity_history[:, -2])  # v^t
         latent = self.processor.inverse(self.encode(velocity_history - self.gravity_shift), edge_index, edge_attr,
-                                        condition)
+                                        condition, self.boost_frame())
         return self.decode(latent)
 
     def both_velocities(self, position: Tensor, forward_history: Tensor, inverse_history: Tensor,
@@ -185,9 +212,10 @@ class RGNS(Simulator):
         encoder runs once for the two; ``v^t`` is ``forward_history``'s newest slot and
         ``inverse_history``'s second newest)."""
         edge_attr, condition = self.conditions(position, particle_type, edge_index, forward_history[:, -1])
-        forward = self.processor(self.encode(forward_history), edge_index, edge_attr, condition)
+        frame = self.boost_frame()
+        forward = self.processor(self.encode(forward_history), edge_index, edge_attr, condition, frame)
         inverse = self.processor.inverse(self.encode(inverse_history - self.gravity_shift), edge_index, edge_attr,
-                                         condition)
+                                         condition, frame)
         return (self.decode(forward)[:, -1] + self.gravity_shift,  # newest slot
                 self.decode(inverse)[:, 0])  # oldest slot
 

@@ -64,6 +64,13 @@ class Coupling(MessagePassing):
         wall_channels (int, optional): with ``pairwise``, how many leading conditions are wall
             distances. (default: :obj:`0`)
 
+    With ``pairwise``, ``forward`` may also take a ``frame`` ``[D + 1, H]``: the D directions in
+    which a uniform change of every particle's velocity (a Galilean boost) moves the half latent,
+    and the latent's origin (the encoder's bias). Each pair term is then read in its receiver's
+    rest frame, both ends shifted by the receiver's own component along those directions
+    (:func:`rest_frame_map`), so it depends on relative motion only: if every latent moves by the
+    same boost, no pair term changes. The wall term keeps the absolute latent (walls are at rest).
+
     Shapes:
         - **input:** half latent :math:`(|\mathcal{V}|, H)`, edge indices :math:`(2, |\mathcal{E}|)`,
           edge latents :math:`(|\mathcal{E}|, H)`, node conditions :math:`(|\mathcal{V}|, C_{cond})`
@@ -100,10 +107,18 @@ class Coupling(MessagePassing):
                 nn.init.zeros_(self.edge_mlp[-1].weight)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor,
-                reverse: Tensor | None = None) -> Tensor:
+                reverse: Tensor | None = None, frame: Tensor | None = None) -> Tensor:
         """``reverse [E, 1]``: with ``pairwise``, each edge's reverse (:func:`~rgns.data.graph.reverse_edges`,
-        as a column: GroupAddRev hands it whole to both couplings); found here when not given."""
+        as a column: GroupAddRev hands it whole to both couplings); found here when not given.
+        ``frame [D + 1, H]``: with ``pairwise``, read the pair terms in their receivers' rest frames."""
         edge_term, receiver, sender = edge_input_terms(self.edge_mlp, self.channels, x, edge_attr)  # [E|N, H_hidden]
+        if frame is not None:
+            if not self.pairwise:
+                raise ValueError("a rest frame applies to pairwise couplings only")
+            weight = self.edge_mlp[0].weight[:, self.channels :]  # [H_hidden, 2 H]: receiver, sender
+            own, other = weight.chunk(2, dim=1)
+            # W_r h_i + W_s h_j at h_i - s_i, h_j - s_i, with s_i the receiver's boost component
+            receiver = receiver - rest_frame_map(x, frame, own + other)
         message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, H]
         if self.pairwise:
             back = reverse[:, 0] if reverse is not None else reverse_edges(edge_index, x.size(0))  # [E]
@@ -119,6 +134,19 @@ class Coupling(MessagePassing):
 
     def message(self, message: Tensor) -> Tensor:
         return message
+
+
+def rest_frame_map(x: Tensor, frame: Tensor, weight: Tensor) -> Tensor:
+    """``weight`` applied to each latent's component along the boost directions of ``frame``
+    (rows ``U [D, H]``, then the origin ``b [H]``): ``(x - b) P W^T`` with ``P`` the orthogonal
+    projection onto the span of ``U``. A latent moved by a boost, ``x + a U``, gives this plus
+    ``a U W^T``: subtracted from a linear layer's receiver term together with the sender's
+    weight, it cancels the boost in every pair.
+
+    Shapes: x ``[N, H]``, frame ``[D + 1, H]``, weight ``[H_out, H]``  ->  ``[N, H_out]``"""
+    directions, origin = frame[:-1], frame[-1]
+    projection = directions.T @ torch.linalg.solve(directions @ directions.T, directions)  # [H, H]
+    return nn.functional.linear(x - origin, weight @ projection)
 
 
 class ReversibleBlock(GroupAddRev):
@@ -299,23 +327,38 @@ class RRMP(nn.Module):
         for block in self.blocks:
             block.disable = plain
 
-    def _shared(self, x: Tensor, edge_index: Tensor, condition: Tensor) -> tuple[Tensor, ...]:
+    def _shared(self, x: Tensor, edge_index: Tensor, condition: Tensor, frame: Tensor | None) -> tuple[Tensor, ...]:
         """What every coupling reads besides its edge latent: the node conditions, and with
-        ``pairwise`` the reverse of every edge (found once for all the couplings)."""
+        ``pairwise`` the reverse of every edge (found once for all the couplings) and the rest
+        frame, if any."""
         if not self.pairwise:
+            if frame is not None:
+                raise ValueError("a rest frame applies to pairwise couplings only")
             return (condition,)
-        return condition, reverse_edges(edge_index, x.size(0))[:, None]  # [E, 1]
+        reverse = reverse_edges(edge_index, x.size(0))[:, None]  # [E, 1]
+        if frame is None:
+            return condition, reverse
+        if frame.size(-1) != x.size(-1):
+            raise ValueError(f"the rest frame spans {frame.size(-1)} latent channels, the latent {x.size(-1)}")
+        # GroupAddRev gives the first half of a split argument to f, which reads the second half
+        # of the latent, and the second to g, which reads the first: the frame's halves swapped
+        first, second = frame.chunk(2, dim=-1)
+        return condition, reverse, torch.cat([second, first], dim=-1)
 
-    def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
+    def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor,
+                frame: Tensor | None = None) -> Tensor:
+        """``frame [D + 1, C]``: with ``pairwise``, pair terms read in their receivers' rest
+        frames (:class:`Coupling`)."""
         self._set_memory_saving()
-        shared = self._shared(x, edge_index, condition)
+        shared = self._shared(x, edge_index, condition, frame)
         for block, edge_latent in zip(self.blocks, self.edge_latents(edge_attr)):
             x = block(x, edge_index, edge_latent, *shared)
         return x
 
-    def inverse(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor) -> Tensor:
+    def inverse(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor,
+                frame: Tensor | None = None) -> Tensor:
         self._set_memory_saving()
-        shared = self._shared(x, edge_index, condition)
+        shared = self._shared(x, edge_index, condition, frame)
         for block, edge_latent in zip(reversed(self.blocks), reversed(self.edge_latents(edge_attr))):
             x = block.inverse(x, edge_index, edge_latent, *shared)
         return x
