@@ -24,6 +24,7 @@ from rgns.data.contract import SPLITS, WATER, write_metadata, write_split
 from rgns.evaluation.baselines import Ballistic, ConstantVelocity
 from rgns.evaluation.methods import Method, _disambiguate, describe, find_checkpoints
 from rgns.evaluation.metrics import density_ratio
+from rgns.evaluation.freefall import internal_accelerations
 from rgns.evaluation.rest import settled_pool
 from rgns.evaluation.walls import at_the_walls
 from rgns.evaluation.run import evaluate
@@ -153,6 +154,51 @@ def test_at_the_walls_speed_is_the_rollouts_own():
     rows = at_the_walls(model, still, types, start=7, steps=[0, 10], near=0.0005)
     for row in rows:
         assert row["truth"]["speed"] == 0.0 and row["model"]["speed"] == pytest.approx(0.002, abs=1e-7)
+
+
+def falling_body(frames: int = 12, seed: int = 0) -> torch.Tensor:
+    """A loose body of 30 particles in the middle of the box, falling ballistically at about
+    3e-3 per frame sideways: a rigid motion, so its true internal acceleration is zero. ``[T, 30, 2]``"""
+    generator = torch.Generator().manual_seed(seed)
+    shape = 0.45 + 0.1 * torch.rand(30, 2, generator=generator, dtype=torch.float64)
+    t = torch.arange(frames, dtype=torch.float64)[:, None]
+    centre = torch.cat([3e-3 * t, -0.5 * 6.1e-5 * t**2], dim=-1)  # [T, 2]
+    return (shape[None] + centre[:, None]).float()
+
+
+def test_free_fall_internal_accelerations_tell_galilean_pair_terms_apart():
+    """Constant velocity adds no internal acceleration at any speed and the rigid truth has none;
+    a Galilean R-GNS far from the walls adds the same at every speed of the body, the same network
+    without the option adds a different one at each."""
+    from rgns.models import RGNS
+
+    position, types = falling_body(), torch.full((30,), WATER)
+    metadata = dict(make_metadata(radius=0.05), gravity=[0.0, -9.81])
+    still = internal_accelerations(ConstantVelocity(metadata), position, types, frame=6, speeds=[0.0, 1.0, 2.0])
+    assert still["model"] == {0.0: 0.0, 1.0: 0.0, 2.0: 0.0}
+    assert still["truth"] < 3e-7  # float32 round-off of second differences near 0.5, against gravity's 6.1e-5
+    assert still["speed"] == pytest.approx(float(torch.tensor([3e-3, -6.1e-5 * 5.5]).norm()), rel=1e-3)
+    found = {}
+    for galilean in (True, False):
+        torch.manual_seed(0)
+        model = RGNS(metadata, latent=16, layers=2, couplings="pairwise", galilean=galilean, zero_init=False)
+        found[galilean] = internal_accelerations(model, position, types, frame=6, speeds=[0.0, 1.0, 2.0])["model"]
+    assert min(found[True].values()) > 1e-6  # the network does push the particles about
+    assert max(found[True].values()) - min(found[True].values()) < 1e-3 * max(found[True].values())
+    assert max(found[False].values()) - min(found[False].values()) > 1e-2 * max(found[False].values())
+    with pytest.raises(ValueError, match="frame"):
+        internal_accelerations(model, position, types, frame=2, speeds=[1.0])  # no full history before it
+
+
+def test_free_fall_diagnostic_runs_on_a_checkpoint(trained, tmp_path):
+    from rgns.evaluation.freefall import main as freefall
+
+    checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
+    result = freefall([str(checkpoint), "--trajectories", "2", "--speeds", "0", "1", "--json", str(tmp_path / "f.json")])
+    assert len(result["trajectories"]) == 2 and set(result["summary"]["model"]) == {0.0, 1.0}
+    assert json.loads((tmp_path / "f.json").read_text())["frame"] == 6
+    with pytest.raises(SystemExit):
+        freefall([str(checkpoint), "--frame", "1"])
 
 
 def pid_after(job: int) -> tuple[int, int]:
