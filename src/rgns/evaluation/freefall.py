@@ -23,13 +23,14 @@ import torch
 from torch import Tensor
 
 from rgns.data.contract import KINEMATIC
+from rgns.evaluation.metrics import rms_norm
 from rgns.models import Simulator, State
 from rgns.models.base import dataset_gravity
 
 
 def internal(acceleration: Tensor) -> float:
     """RMS of ``[M, D]`` accelerations less their mean over the particles."""
-    return float((acceleration - acceleration.mean(0)).pow(2).sum(-1).mean().sqrt())
+    return rms_norm(acceleration - acceleration.mean(0))
 
 
 @torch.no_grad()
@@ -60,6 +61,7 @@ def internal_accelerations(model: Simulator, position: Tensor, particle_type: Te
 
 def main(argv: list[str] | None = None) -> dict:
     from rgns.evaluation.methods import add_checkpoint_arguments, load_checkpoint_on_split
+    from rgns.evaluation.tasks import mean_or_none
 
     parser = argparse.ArgumentParser(prog="python -m rgns.evaluation.freefall", description=__doc__.split("\n\n")[0])
     add_checkpoint_arguments(parser)
@@ -76,9 +78,9 @@ def main(argv: list[str] | None = None) -> dict:
     except ValueError as err:
         raise SystemExit(f"{root} ({args.split}): {err}") from None
     gravity = float(dataset_gravity(dataset.metadata).norm())
-    summary = dict(model={speed: sum(row["model"][speed] for row in rows) / len(rows) for speed in args.speeds},
-                   truth=sum(row["truth"] for row in rows) / len(rows),
-                   speed=sum(row["speed"] for row in rows) / len(rows), gravity=gravity)
+    summary = dict(model={speed: mean_or_none(row["model"][speed] for row in rows) for speed in args.speeds},
+                   truth=mean_or_none(row["truth"] for row in rows),
+                   speed=mean_or_none(row["speed"] for row in rows), gravity=gravity)
     print(f"{args.checkpoint}: one step from frame {args.frame} of {len(rows)} {args.split} trajectories of {root}; "
           f"rms internal acceleration (position units per frame^2), mean over the trajectories")
     for speed in args.speeds:

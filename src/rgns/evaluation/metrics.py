@@ -15,6 +15,7 @@ import numpy as np
 import ot
 import torch
 
+from rgns.data.contract import KINEMATIC
 from rgns.data.stats import mean_neighbours
 from rgns.training.losses import gaussian_mmd
 
@@ -22,6 +23,17 @@ from rgns.training.losses import gaussian_mmd
 def mse_per_step(predicted: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     """``[T, N, D]`` x 2 -> ``[T]``."""
     return (predicted - truth).pow(2).flatten(1).mean(1)
+
+
+def rms_norm(vectors: torch.Tensor) -> float:
+    """Root-mean-square length of vectors ``[..., D]``: per-frame velocities give the rms speed,
+    accelerations less their mean the rms internal acceleration."""
+    return float(vectors.pow(2).sum(-1).mean().sqrt())
+
+
+def reference_speed(position: torch.Tensor, particle_type: torch.Tensor) -> float:
+    """RMS per-frame speed of the moving particles of a true trajectory ``[T, N, D]``."""
+    return rms_norm(torch.diff(position[:, particle_type != KINEMATIC], dim=0))
 
 
 def rollout_mse(predicted: torch.Tensor, truth: torch.Tensor) -> float:

@@ -37,7 +37,8 @@ from torch import Tensor
 from tqdm import tqdm
 
 from rgns.data.contract import KINEMATIC, DatasetError, check_dataset, open_split
-from rgns.evaluation.metrics import density_ratio, divergence_step, mmd, mse_per_step, optimal_transport
+from rgns.evaluation.metrics import (density_ratio, divergence_step, mmd, mse_per_step, optimal_transport,
+                                    reference_speed)
 from rgns.models import State
 from rgns.training.rollouts import inverse_then_forward
 
@@ -88,12 +89,6 @@ def finite(value) -> float | None:
 def mean_or_none(values) -> float | None:
     values = list(values)
     return None if not values or any(v is None for v in values) else float(np.mean(values))
-
-
-def reference_speed(position: Tensor, particle_type: Tensor) -> float:
-    """RMS per-frame speed of the moving particles of a true trajectory ``[T, N, D]``."""
-    velocity = torch.diff(position[:, particle_type != KINEMATIC], dim=0)
-    return float(velocity.pow(2).sum(-1).mean().sqrt())
 
 
 def progress(total: int, desc: str) -> tqdm:

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from rgns.data.contract import KINEMATIC
+from rgns.evaluation.metrics import rms_norm
 from rgns.models import Simulator, State
 
 
@@ -39,11 +40,6 @@ def wall_figures(position: Tensor, bounds: Tensor, near: float) -> dict[str, flo
     gap = torch.cat([position - bounds[:, 0], bounds[:, 1] - position], dim=-1).min(dim=-1).values  # [M]
     return dict(closest=float(gap.min()), near_fraction=float((gap < near).float().mean()),
                 height=float((position[:, -1] - bounds[-1, 0]).mean()))
-
-
-def rms_speed(velocity: Tensor) -> float:
-    """Root-mean-square speed of per-frame velocities ``[M, D]`` (position units per frame)."""
-    return float(velocity.pow(2).sum(-1).mean().sqrt())
 
 
 @torch.no_grad()
@@ -75,8 +71,8 @@ def at_the_walls(model: Simulator, position: Tensor, particle_type: Tensor, star
         error = float((mine - true).pow(2).sum(-1).mean())
         centre = float((mine.mean(0) - true.mean(0)).pow(2).sum())
         model, truth = wall_figures(mine, bounds, near), wall_figures(true, bounds, near)
-        model["speed"] = rms_speed(mine - before)
-        truth["speed"] = rms_speed(true - position[start + step][moving])
+        model["speed"] = rms_norm(mine - before)
+        truth["speed"] = rms_norm(true - position[start + step][moving])
         rows.append(dict(step=step, model=model, truth=truth, error=error,
                          centre_share=centre / error if error > 0 else None))
     return rows

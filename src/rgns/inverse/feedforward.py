@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from rgns.data.contract import KINEMATIC
-from rgns.evaluation.metrics import divergence_step
+from rgns.evaluation.metrics import divergence_step, reference_speed
 from rgns.inverse.optimise import InverseResult
 from rgns.models import Simulator, State
 
@@ -40,12 +40,6 @@ def feed_forward_inverse(model: Simulator, state: State, steps: int) -> tuple[In
                            seconds, steps, float("nan"))
     inferred = torch.stack(frames) if frames else state.position[:0].unsqueeze(0)
     return result, inferred
-
-
-def reference_speed(position: Tensor, particle_type: Tensor) -> float:
-    """RMS per-frame speed of the moving particles of a true trajectory ``[T, N, D]``."""
-    velocity = torch.diff(position[:, particle_type != KINEMATIC], dim=0)
-    return float(velocity.pow(2).sum(-1).mean().sqrt())
 
 
 def _stable(positions: Tensor, particle_type: Tensor, bounds: Tensor, margin: float, speed: float,
