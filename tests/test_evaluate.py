@@ -156,6 +156,38 @@ def test_at_the_walls_speed_is_the_rollouts_own():
         assert row["truth"]["speed"] == 0.0 and row["model"]["speed"] == pytest.approx(0.002, abs=1e-7)
 
 
+
+def test_walls_main_rolls_the_figure_trajectory_out_once(tmp_path, monkeypatch):
+    """With ``--figure``, the figure's trajectory is rolled out once, to the later of the two step
+    lists, and its rows are the ones a run without the figure reports."""
+    from types import SimpleNamespace
+
+    import rgns.evaluation.methods as methods
+    from rgns.evaluation import walls
+
+    metadata = make_metadata(frames=30)
+    x = 0.3 + 0.01 * torch.arange(10.0)
+    trajectories = []
+    for speed in (0.004, 0.006):
+        height = (0.4 - speed * torch.arange(30.0)).clamp(min=0.101)
+        trajectories.append((torch.stack([x.expand(30, -1), height[:, None].expand(-1, 10)], dim=-1),
+                             torch.full((10,), WATER)))
+    model = ConstantVelocity(metadata)
+    horizons = []
+    rollout = model.rollout
+    monkeypatch.setattr(model, "rollout", lambda state, horizon, *a: horizons.append(horizon) or rollout(state, horizon, *a))
+    dataset = SimpleNamespace(trajectories=trajectories, start=5, metadata=metadata)
+    monkeypatch.setattr(methods, "load_checkpoint_on_split", lambda args: (model, tmp_path, dataset))
+    plain = walls.main(["unused.ckpt", "--steps", "0", "10"])
+    assert horizons == [11, 11]
+    horizons.clear()
+    figure = tmp_path / "walls.png"
+    drawn = walls.main(["unused.ckpt", "--steps", "0", "10", "--figure", str(figure), "--figure-trajectory", "1",
+                        "--figure-steps", "5", "20"])
+    assert horizons == [11, 21] and figure.stat().st_size > 0  # trajectory 1 once, to step 20
+    assert drawn["trajectories"] == plain["trajectories"]
+
+
 def falling_body(frames: int = 12, seed: int = 0) -> torch.Tensor:
     """A loose body of 30 particles in the middle of the box, falling ballistically at about
     3e-3 per frame sideways: a rigid motion, so its true internal acceleration is zero. ``[T, 30, 2]``"""

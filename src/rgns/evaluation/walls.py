@@ -58,11 +58,15 @@ def rollout_from(model: Simulator, position: Tensor, particle_type: Tensor, star
 
 @torch.no_grad()
 def at_the_walls(model: Simulator, position: Tensor, particle_type: Tensor, start: int, steps: list[int],
-                 near: float) -> list[dict]:
+                 near: float, predicted: Tensor | None = None) -> list[dict]:
     """One row per step in ``steps`` (counted from 0, the first predicted frame, as the forward
-    task's per-step errors) that the trajectory holds. Shapes: position ``[T, N, D]``, particle_type ``[N]``."""
+    task's per-step errors) that the trajectory holds; ``predicted``, the model's rollout from
+    ``start`` if already made (at least to ``max(steps)`` or the trajectory's end).
+
+    Shapes: position ``[T, N, D]``, particle_type ``[N]``, predicted ``[S, N, D]``."""
     moving = particle_type != KINEMATIC
-    predicted = rollout_from(model, position, particle_type, start, max(steps))
+    if predicted is None:
+        predicted = rollout_from(model, position, particle_type, start, max(steps))
     bounds = model.bounds.to(position)
     rows = []
     for step in (s for s in steps if s < len(predicted)):  # steps past the trajectory's end are left out
@@ -79,8 +83,9 @@ def at_the_walls(model: Simulator, position: Tensor, particle_type: Tensor, star
 
 
 def snapshot_figure(model: Simulator, position: Tensor, particle_type: Tensor, start: int, steps: list[int],
-                    path: Path, title: str) -> None:
-    """Truth (top) and simulator (bottom) at ``steps`` of one trajectory's rollout, saved to ``path``."""
+                    path: Path, title: str, predicted: Tensor | None = None) -> None:
+    """Truth (top) and simulator (bottom) at ``steps`` of one trajectory's rollout (``predicted``
+    if already made, as in :func:`at_the_walls`), saved to ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -89,7 +94,8 @@ def snapshot_figure(model: Simulator, position: Tensor, particle_type: Tensor, s
     from rgns.evaluation.plots import save_figure
 
     moving = particle_type != KINEMATIC
-    predicted = rollout_from(model, position, particle_type, start, max(steps))
+    if predicted is None:
+        predicted = rollout_from(model, position, particle_type, start, max(steps))
     steps = [s for s in steps if s < len(predicted)]
     bounds = model.bounds.cpu().numpy()
     fig, axes = plt.subplots(2, len(steps), figsize=(2.4 * len(steps), 5.0), squeeze=False)
@@ -126,8 +132,17 @@ def main(argv: list[str] | None = None) -> dict:
     if args.hard_walls != "checkpoint":
         model.hard_walls = args.hard_walls == "on"
     near = args.near * float(dataset.metadata["default_connectivity_radius"])
+    if args.figure and not 0 <= args.figure_trajectory < len(dataset.trajectories):
+        raise SystemExit(f"--figure-trajectory {args.figure_trajectory}: {len(dataset.trajectories)} trajectories loaded")
+    figure_rollout = None
     try:
-        rows = [at_the_walls(model, p, t, dataset.start, args.steps, near) for p, t in dataset.trajectories]
+        rows = []
+        for index, (p, t) in enumerate(dataset.trajectories):
+            predicted = None
+            if args.figure and index == args.figure_trajectory:  # one rollout serves the rows and the figure
+                predicted = figure_rollout = rollout_from(model, p, t, dataset.start,
+                                                          max(args.steps + args.figure_steps))
+            rows.append(at_the_walls(model, p, t, dataset.start, args.steps, near, predicted))
     except ValueError as err:
         raise SystemExit(f"{root} ({args.split}): {err}") from None
     print(f"{args.checkpoint}: rollouts from frame {dataset.start} of {len(rows)} {args.split} trajectories of {root}, "
@@ -149,11 +164,9 @@ def main(argv: list[str] | None = None) -> dict:
               f"{mean['truth']['speed']:.3g}); error {mean['error']:.3g}, centre of mass "
               f"{100 * (mean['centre_share'] or 0):.0f}% of it")
     if args.figure:
-        if not 0 <= args.figure_trajectory < len(dataset.trajectories):
-            raise SystemExit(f"--figure-trajectory {args.figure_trajectory}: {len(dataset.trajectories)} trajectories loaded")
         position, particle_type = dataset.trajectories[args.figure_trajectory]
         snapshot_figure(model, position, particle_type, dataset.start, args.figure_steps, args.figure,
-                        f"{model.display_name or type(model).__name__}")
+                        f"{model.display_name or type(model).__name__}", figure_rollout)
         print(f"  figure: {args.figure}")
     result = dict(checkpoint=args.checkpoint, split=args.split, hard_walls=model.hard_walls, near=near,
                   summary=summary, trajectories=rows)
