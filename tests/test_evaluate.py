@@ -156,7 +156,6 @@ def test_at_the_walls_speed_is_the_rollouts_own():
         assert row["truth"]["speed"] == 0.0 and row["model"]["speed"] == pytest.approx(0.002, abs=1e-7)
 
 
-
 def test_walls_main_rolls_the_figure_trajectory_out_once(tmp_path, monkeypatch):
     """With ``--figure``, the figure's trajectory is rolled out once, to the later of the two step
     lists, and its rows are the ones a run without the figure reports."""

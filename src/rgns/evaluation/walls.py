@@ -83,9 +83,9 @@ def at_the_walls(model: Simulator, position: Tensor, particle_type: Tensor, star
 
 
 def snapshot_figure(model: Simulator, position: Tensor, particle_type: Tensor, start: int, steps: list[int],
-                    path: Path, title: str, predicted: Tensor | None = None) -> None:
-    """Truth (top) and simulator (bottom) at ``steps`` of one trajectory's rollout (``predicted``
-    if already made, as in :func:`at_the_walls`), saved to ``path``."""
+                    path: Path, title: str, predicted: Tensor) -> None:
+    """Truth (top) and simulator (bottom) at ``steps`` of one trajectory's rollout ``predicted``
+    (:func:`rollout_from`), saved to ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -94,8 +94,6 @@ def snapshot_figure(model: Simulator, position: Tensor, particle_type: Tensor, s
     from rgns.evaluation.plots import save_figure
 
     moving = particle_type != KINEMATIC
-    if predicted is None:
-        predicted = rollout_from(model, position, particle_type, start, max(steps))
     steps = [s for s in steps if s < len(predicted)]
     bounds = model.bounds.cpu().numpy()
     fig, axes = plt.subplots(2, len(steps), figsize=(2.4 * len(steps), 5.0), squeeze=False)
