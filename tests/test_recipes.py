@@ -100,6 +100,45 @@ def test_pushforward_unrolls_its_steps_without_gradients(tiny_dataset):
     assert all(p.grad is not None for p in module.model.parameters() if p.requires_grad)
 
 
+def test_early_windows_fill_in_the_lead_with_the_first_frame(tiny_dataset):
+    split = open_split(tiny_dataset, "train")
+    plain = WindowDataset(split, radius=0.08, history=5, lead=0, horizon=2)
+    early = WindowDataset(split, radius=0.08, history=5, lead=3, horizon=2, early_windows=True)
+    assert early.index == plain.index  # no target is dropped for the lead
+    position, _ = split[early.index[0][0]]
+    position = torch.from_numpy(position)
+    first, second = early[0], early[1]  # t = 5 and 6: 0 and 1 real frames before the history
+    assert early.index[0][1] == 5 and first.frames.shape[1] == 3 + 5 + 1 + 2
+    assert first.lead_frames.tolist() == [0] * len(position[0]) and int(second.lead_frames[0]) == 1
+    for j in range(3):  # the missing lead frames are the first frame
+        torch.testing.assert_close(first.frames[:, j], position[0])
+    torch.testing.assert_close(first.frames[:, 3:], position[: 5 + 1 + 2].transpose(0, 1))
+    torch.testing.assert_close(second.frames[:, 2:], position[: 6 + 1 + 2].transpose(0, 1))
+    late = early[len(early) - 1]
+    assert int(late.lead_frames[0]) == 3  # far enough in: the whole lead is real
+
+
+def test_pushforward_from_an_early_window_starts_at_its_own_first_frame(tiny_dataset):
+    split = open_split(tiny_dataset, "train")
+    windows = WindowDataset(split, radius=0.08, history=5, lead=3, horizon=1, early_windows=True)
+    early, late = windows[1], windows[len(windows) - 1]  # 1 and 3 real frames before the history
+    batch = Batch.from_data_list([early, late])
+    module = SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, noise_std=0.0,
+                             pushforward={"steps": [-1], "unrolls": [3], "probs": [1]})
+    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(lead=3), global_step=100)
+    starts = record_starts(module)
+    module._losses(batch)
+    assert len(starts) == 4  # three pushed steps and the trained one
+    first, second = batch.batch == 0, batch.batch == 1
+    # the early window waits two steps at its own first frame (frame 0 of the trajectory, index 2),
+    # then is pushed once; the late one is pushed from 3 frames before its history's end
+    for j in range(3):
+        torch.testing.assert_close(starts[j][first], early.frames[:, 2 + 5])
+    assert not torch.equal(starts[3][first], early.frames[:, 2 + 5])
+    torch.testing.assert_close(starts[0][second], late.frames[:, 5])
+    assert not torch.equal(starts[1][second], late.frames[:, 5])
+
+
 def test_pushforward_asks_for_the_frames_it_needs(tiny_dataset):
     module = module_with(pushforward={"steps": [-1], "unrolls": [3], "probs": [1]}, lead=1)
     with pytest.raises(ValueError, match="data.lead >= 3"):

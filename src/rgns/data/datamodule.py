@@ -38,6 +38,9 @@ class ParticleDataModule(L.LightningDataModule):
         lead, horizon: extra frames of each training window before and after it, for training
             through several steps (``module.pushforward``, ``module.unroll``; see
             :class:`~rgns.data.windows.WindowDataset`).
+        early_windows: with a lead, also train on the windows fewer than ``lead`` frames into a
+            trajectory (a pushforward from them starts at its first frame; see
+            :class:`~rgns.data.windows.WindowDataset`).
         cache_mb: training trajectories kept in memory once read, per process (MiB; see
             :class:`~rgns.data.windows.WindowDataset`).
         position_correction, position_noise, noise_low: variants of the training noise (see
@@ -59,6 +62,7 @@ class ParticleDataModule(L.LightningDataModule):
         position_correction: float = 0.0,
         position_noise: float = 1.0,
         noise_low: float = 1.0,
+        early_windows: bool = False,
     ):
         super().__init__()
         if isinstance(history, bool) or not isinstance(history, int) or history < 1:
@@ -72,7 +76,7 @@ class ParticleDataModule(L.LightningDataModule):
         self.make_root = None if make_root is None else Path(make_root)
         self.history, self.noise_std = history, noise_std
         self.batch_size, self.num_workers = batch_size, num_workers
-        self.lead, self.horizon = lead, horizon
+        self.lead, self.horizon, self.early_windows = lead, horizon, early_windows
         self.cache_mb = cache_mb
         self.position_correction, self.position_noise = position_correction, position_noise
         self.noise_low = noise_low
@@ -99,8 +103,10 @@ class ParticleDataModule(L.LightningDataModule):
         """The whole dataset, checked once (see the class docs)."""
         if self._contents is None:
             k = self.history
-            # a training window spans lead + k + 1 + horizon frames, a validation window k + 2
-            contents = check_dataset(self.root, min_frames={"train": self.lead + k + 1 + self.horizon, "valid": k + 2})
+            # a training window spans lead + k + 1 + horizon frames (early windows fill in the lead),
+            # a validation window k + 2
+            lead = 0 if self.early_windows else self.lead
+            contents = check_dataset(self.root, min_frames={"train": lead + k + 1 + self.horizon, "valid": k + 2})
             if not contents.shapes["train"]:
                 raise DatasetError(f"{self.root / 'train.h5'}: no trajectories; nothing to train on")
             if not contents.shapes["valid"]:
@@ -128,7 +134,7 @@ class ParticleDataModule(L.LightningDataModule):
         if stage in (None, "fit"):
             self.train_set = WindowDataset(self.split("train"), self.radius, self.history, self.noise_std,
                                            self.lead, self.horizon, self.cache_mb, self.position_correction,
-                                           self.position_noise, self.noise_low)
+                                           self.position_noise, self.noise_low, self.early_windows)
             self.valid_set = WindowDataset(self.split("valid"), self.radius, self.history, 0.0)
             self.valid_trajectories = TrajectoryDataset(self.split("valid"))
 

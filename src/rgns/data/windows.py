@@ -62,7 +62,11 @@ class WindowDataset(Dataset):
 
     With ``lead > 0`` or ``horizon > 1`` (training through several steps: pushforward, unrolled
     losses) it also holds ``frames [N, lead + k + 1 + horizon, D]``, the clean positions
-    ``p^{t-k-lead} .. p^{t+horizon}``, and ``t`` runs only where they all exist.
+    ``p^{t-k-lead} .. p^{t+horizon}``, and ``t`` runs only where they all exist. With
+    ``early_windows`` as well, ``t`` runs from ``k`` as without a lead: a window fewer than
+    ``lead`` frames into its trajectory repeats the first frame in place of the missing ones, and
+    its ``lead_frames [N]`` (``min(lead, t - k)``, the real frames before ``p^{t-k}``) tells a
+    pushforward how far back it may start.
 
     Args:
         split: an open :class:`~rgns.data.contract.Split`.
@@ -70,6 +74,9 @@ class WindowDataset(Dataset):
         history: k, the number of velocities in a history.
         noise_std: GNS random-walk noise std (0 for validation).
         lead: frames before ``p^{t-k}`` a pushforward may start from.
+        early_windows: keep the windows with fewer than ``lead`` frames before ``p^{t-k}`` (their
+            pushforward starts at the trajectory's first frame, so it pushes fewer steps); without
+            it a lead drops the first ``lead`` targets of every trajectory from training.
         horizon: frames after ``p^t`` an unrolled loss may reach (1: the next frame only).
         position_correction: the fraction of ``p~^t``'s noise the forward target takes back (the
             next position lands that much nearer the clean ``p^{t+1}``; 0: GNS's target).
@@ -86,13 +93,13 @@ class WindowDataset(Dataset):
 
     def __init__(self, split: Split, radius: float, history: int = 5, noise_std: float = 0.0,
                  lead: int = 0, horizon: int = 1, cache_mb: float = 1024.0, position_correction: float = 0.0,
-                 position_noise: float = 1.0, noise_low: float = 1.0):
+                 position_noise: float = 1.0, noise_low: float = 1.0, early_windows: bool = False):
         if not 0 <= noise_low <= 1:
             raise ValueError(f"noise_low={noise_low!r} must be in [0, 1] (1: every window at noise_std)")
         if lead < 0 or horizon < 1:
             raise ValueError(f"lead={lead} must be >= 0 and horizon={horizon} >= 1")
         self.split, self.radius, self.history, self.noise_std = split, radius, history, noise_std
-        self.lead, self.horizon = lead, horizon
+        self.lead, self.horizon, self.early_windows = lead, horizon, early_windows
         self.position_correction, self.position_noise = position_correction, position_noise
         self.noise_low = noise_low
         self.cache_bytes = int(cache_mb * 2**20)
@@ -100,8 +107,10 @@ class WindowDataset(Dataset):
         self._kept_bytes = 0
         self.window = history + 2
         # window (s, t) covers frames t-k-lead .. t+horizon; t runs over k+lead .. T-1-horizon
+        # (from k with early windows, the missing lead frames filled in)
+        first = history if early_windows else history + lead
         self.index = [(s, t) for s, (frames, _, _) in enumerate(split.shapes)
-                      for t in range(history + lead, frames - horizon)]
+                      for t in range(first, frames - horizon)]
         self._cache: tuple[int, torch.Tensor, torch.Tensor] | None = None
 
     def __len__(self) -> int:
@@ -138,7 +147,13 @@ class WindowDataset(Dataset):
         inverse_target = velocity[0]  # the clean v^{t-k+1}
         extra = {}
         if self.lead > 0 or self.horizon > 1:
-            extra["frames"] = position[t - k - self.lead : t + 1 + self.horizon].transpose(0, 1).contiguous()
+            begin = t - k - self.lead
+            frames = position[max(begin, 0) : t + 1 + self.horizon]
+            if begin < 0:  # an early window: the first frame stands in for the -begin missing ones
+                frames = torch.cat([position[:1].expand(-begin, *position.shape[1:]), frames])
+            extra["frames"] = frames.transpose(0, 1).contiguous()
+            if self.early_windows:
+                extra["lead_frames"] = torch.full((len(particle_type),), min(self.lead, t - k), dtype=torch.long)
         return Data(
             **extra,
             pos=position_t,

@@ -141,8 +141,17 @@ class SimulatorModule(L.LightningModule):
         if frames is None or lead < pushed or frames.shape[1] - lead - k - 1 < length:
             raise ValueError(f"pushforward/unroll need windows with more frames: set {needed}")
         moving = batch.particle_type != KINEMATIC
-        start = lead + k - pushed  # index of the frame the state starts at
-        window = frames[:, start - k : start + 1].transpose(0, 1)  # [k + 1, N, D], clean
+        start = lead + k - pushed  # index of the frame the pushforward starts at
+        # an early window (data.early_windows) has only lead_frames real frames before its history:
+        # it starts `wait` pushed steps later, at its own first frame, and is held there until then
+        lead_frames = getattr(batch, "lead_frames", None)
+        wait = None if lead_frames is None else pushed - lead_frames.clamp(max=pushed)  # [N]
+        if wait is None or not bool(wait.any()):
+            wait = None
+            window = frames[:, start - k : start + 1].transpose(0, 1)  # [k + 1, N, D], clean
+        else:
+            index = start + wait[:, None] + torch.arange(-k, 1, device=frames.device)  # [N, k + 1]
+            window = frames.gather(1, index[..., None].expand(-1, -1, frames.shape[2])).transpose(0, 1)
         velocity = window[1:] - window[:-1]  # [k, N, D]
         if self.hparams.noise_std > 0:  # a level per window (graph) of the batch, as the one-step windows draw theirs
             level = noise_level(self.hparams.noise_low, size=int(batch.num_graphs))
@@ -153,10 +162,15 @@ class SimulatorModule(L.LightningModule):
         noisy_last = scale_position_noise(window[0] + velocity.sum(0), window[-1], self.hparams.position_noise)
         # the targets move with the start frame's noise (as in GNS), less the corrected fraction
         offset = (1 - self.hparams.position_correction) * (noisy_last - window[-1])
-        state = State(noisy_last, velocity.transpose(0, 1).contiguous(), batch.particle_type, batch.batch)
+        state = initial = State(noisy_last, velocity.transpose(0, 1).contiguous(), batch.particle_type, batch.batch)
         with torch.no_grad():
             for j in range(pushed):
                 state = self.model.step(state, kinematic_position=frames[:, start + j + 1])
+                if wait is not None:  # the windows whose own start (frame start + wait) is still ahead
+                    hold = wait > j
+                    state = State(torch.where(hold[:, None], initial.position, state.position),
+                                  torch.where(hold[:, None, None], initial.velocity_history, state.velocity_history),
+                                  state.particle_type, state.batch)
         scale = self.model.acc_std_noisy
         totals: dict[str, torch.Tensor] = {}
         for j in range(length):
