@@ -130,8 +130,9 @@ def test_pushforward_from_an_early_window_starts_at_its_own_first_frame(tiny_dat
     module._losses(batch)
     assert len(starts) == 4  # three pushed steps and the trained one
     first, second = batch.batch == 0, batch.batch == 1
-    # the early window waits two steps at its own first frame (frame 0 of the trajectory, index 2),
-    # then is pushed once; the late one is pushed from 3 frames before its history's end
+    # the early window waits two steps at the first state its frames hold (history from the
+    # trajectory's frame 0, at index 2; position at index 2 + 5), then is pushed once; the late
+    # one is pushed from the state 3 frames before p^t
     for j in range(3):
         torch.testing.assert_close(starts[j][first], early.frames[:, 2 + 5])
     assert not torch.equal(starts[3][first], early.frames[:, 2 + 5])

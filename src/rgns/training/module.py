@@ -143,7 +143,8 @@ class SimulatorModule(L.LightningModule):
         moving = batch.particle_type != KINEMATIC
         start = lead + k - pushed  # index of the frame the pushforward starts at
         # an early window (data.early_windows) has only lead_frames real frames before its history:
-        # it starts `wait` pushed steps later, at its own first frame, and is held there until then
+        # it starts `wait` pushed steps later, from the first state its real frames hold (history
+        # from the trajectory's frame 0), and is held at that state until then
         lead_frames = getattr(batch, "lead_frames", None)
         wait = None if lead_frames is None else pushed - lead_frames.clamp(max=pushed)  # [N]
         if wait is None or not bool(wait.any()):
