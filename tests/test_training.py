@@ -262,3 +262,25 @@ def test_compiled_training_saves_an_eager_checkpoint(dataset, tmp_path):
     assert info["global_step"] == 6 and info["hparams"]["compile"] is True
     assert not model.compiled
     assert "val/rollout_mse" in scalar_tags(run)
+
+
+def test_progress_line_time_left_counts_this_fits_steps_after_a_resume(capsys):
+    """A resumed run begins at its checkpoint's step: the time left comes from the steps this fit
+    made, not from the global step (which made it ~40x too short at step 1,189 of 5,000)."""
+    import time
+    from types import SimpleNamespace
+
+    from rgns.training.progress import TimeSplit
+
+    split = TimeSplit(every_s=1.0, force_lines=True)
+    trainer = SimpleNamespace(global_step=1000, max_steps=5000, global_rank=0)
+    split.on_fit_start(trainer, None)
+    split.on_train_batch_start(trainer, None, None, 0)
+    split.on_train_batch_end(trainer, None, {"loss": 1.0}, None, 0)
+    now = time.perf_counter()
+    split._fit_start = now - 100.0           # 100 s into this fit, 100 steps made
+    trainer.global_step = 1100
+    split._print_line(trainer, {"loss": 1.0}, now)
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith("[train] step 1100/5000: loss 1")
+    assert line.endswith("~65.0 min left")    # 3,900 steps at 1 s each
