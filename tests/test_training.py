@@ -275,11 +275,12 @@ def test_progress_line_time_left_counts_this_fits_steps_after_a_resume(capsys):
     split = TimeSplit(every_s=1.0, force_lines=True)
     trainer = SimpleNamespace(global_step=1000, max_steps=5000, global_rank=0)
     split.on_fit_start(trainer, None)
-    split.on_train_batch_start(trainer, None, None, 0)
-    split.on_train_batch_end(trainer, None, {"loss": 1.0}, None, 0)
+    for batch_idx in range(100):             # 100 steps from the resumed step 1,000
+        split.on_train_batch_start(trainer, None, None, batch_idx)
+        trainer.global_step += 1
+        split.on_train_batch_end(trainer, None, {"loss": 1.0}, None, batch_idx)
     now = time.perf_counter()
-    split._fit_start = now - 100.0           # 100 s into this fit, 100 steps made
-    trainer.global_step = 1100
+    split._fit_start = now - 100.0           # 100 s into this fit
     split._print_line(trainer, {"loss": 1.0}, now)
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert line.startswith("[train] step 1100/5000: loss 1")

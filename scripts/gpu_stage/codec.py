@@ -5,7 +5,7 @@ cumulative sums restore every bit), byte planes, xz. About 3.7x on the default s
     python scripts/gpu_stage/codec.py pack SPLIT.h5 OUT.xzd [N_FIRST]
     python scripts/gpu_stage/codec.py unpack SRC_DIR DST_DIR METADATA.json   # every SRC_DIR/*.xzd
 """
-import json, lzma, sys
+import json, lzma, shutil, sys
 from pathlib import Path
 import numpy as np
 
@@ -52,8 +52,7 @@ if __name__ == "__main__":
         from rgns.data.contract import write_split
         src, dst = Path(sys.argv[2]), Path(sys.argv[3]); dst.mkdir(parents=True, exist_ok=True)
         for part in sorted(src.glob("*.xzd")):
-            keys, trajs = unpack(part)
+            _, trajs = unpack(part)
             write_split(dst / f"{part.stem}.h5", trajs)
             print(part.stem, len(trajs), flush=True)
-        meta = json.loads(Path(sys.argv[4]).read_text())
-        (dst / "metadata.json").write_text(json.dumps(meta, indent=2))
+        shutil.copyfile(sys.argv[4], dst / "metadata.json")

@@ -11,17 +11,17 @@ items = []
 for ck in sorted(src.glob("*/checkpoints/*.ckpt")):
     c = torch.load(ck, map_location="cpu", weights_only=False); c.pop("optimizer_states", None)
     b = io.BytesIO(); torch.save(c, b); items.append((f"{ck.parts[-3]}/{ck.name}", b.getvalue()))
-budget, groups, cur, size = 58e6, [], [], 0
+budget = 58e6
 items.sort(key=lambda x: (int(m.group(1)) if (m := re.search(r"step(\d+)", x[0])) else 10**9), reverse=True)
 kept, total = [], 0
 for name, data in items:  # newest steps first; drop the earliest if over budget
     if total + len(data) <= budget: kept.append((name, data)); total += len(data)
     else: print("left out", name)
 kept.sort()
+groups, cur, size = [], [], 0
 for name, data in kept:
-    if size + len(data) > 15e6 or not cur: 
-        if cur: groups.append(cur)
-        cur, size = [], 0
+    if cur and size + len(data) > 15e6:
+        groups.append(cur); cur, size = [], 0
     cur.append((name, data)); size += len(data)
 if cur: groups.append(cur)
 assert len(groups) <= 6, len(groups)

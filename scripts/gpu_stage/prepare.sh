@@ -11,9 +11,8 @@ mkdir -p .gpu/site .gpu/data
 SP=$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 cp -r "$SP/hydra" "$SP/omegaconf" "$SP/antlr4" .gpu/site/
 find .gpu/site -name __pycache__ -prune -exec rm -rf {} +
-cp scripts/gpu_stage/codec.py scripts/gpu_stage/pack.py .gpu/
-.venv/bin/python .gpu/codec.py pack "$DATA/train.h5" .gpu/data/train.xzd "$N"
-.venv/bin/python .gpu/codec.py pack "$DATA/valid.h5" .gpu/data/valid.xzd
-.venv/bin/python .gpu/codec.py pack "$DATA/test.h5" .gpu/data/test.xzd
+.venv/bin/python scripts/gpu_stage/codec.py pack "$DATA/train.h5" .gpu/data/train.xzd "$N"
+.venv/bin/python scripts/gpu_stage/codec.py pack "$DATA/valid.h5" .gpu/data/valid.xzd
+.venv/bin/python scripts/gpu_stage/codec.py pack "$DATA/test.h5" .gpu/data/test.xzd
 cp "$DATA/metadata.json" .gpu/data/metadata.json
 du -sh .gpu

@@ -11,7 +11,7 @@ OUT=${OUT:-/tmp/out}; mkdir -p $OUT
 export TORCHINDUCTOR_COMPILE_THREADS=2 PYTHONPATH=$PWD/src:$PWD/.gpu/site PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 HYDRA_FULL_ERROR=1
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv 2>&1 | tail -2
 $PY -c "import torch,lightning,torch_geometric,hydra,omegaconf,scipy,h5py;print('versions',torch.__version__,lightning.__version__,torch_geometric.__version__,hydra.__version__,'cuda',torch.cuda.is_available())"
-$PY .gpu/codec.py unpack .gpu/data datasets/gpu128 .gpu/data/metadata.json > $OUT/unpack.log 2>&1 &
+$PY scripts/gpu_stage/codec.py unpack .gpu/data datasets/gpu128 .gpu/data/metadata.json > $OUT/unpack.log 2>&1 &
 UNP=$!
 if [ "$ACC" = gpu ] && [ "${BENCH_S:-0}" -gt 0 ]; then
   timeout ${BENCH_S:-0} $PY -m rgns.bench models --device cuda --repeats 10 --json $OUT/bench_models_cuda.json > $OUT/bench_models.log 2>&1
@@ -60,5 +60,5 @@ while :; do
 done
 echo "trainings over t=$(el)"
 for n in "${!ARGS[@]}"; do echo "$n: $(grep -h '\[time\]' outputs/gpu/$n.log | tail -1)"; grep -h '\[validation\]' outputs/gpu/$n.log | sed 's/val\/consistency_mse [^,]*, //' | tail -12; done
-$PY .gpu/pack.py outputs/gpu $OUT
+$PY scripts/gpu_stage/pack.py outputs/gpu $OUT
 echo "packed t=$(el)"; ls -la $OUT

@@ -27,7 +27,6 @@ class TimeSplit(L.Callback):
         self.lines = every_s > 0 and (force_lines or not sys.stderr.isatty())
         self.steps_s = self.validation_s = 0.0
         self.steps = 0
-        self._first_step = None  # the global step this fit began at (a resumed run's is not 0)
         self._fit_start = self._batch_start = self._val_start = self._last_line = None
 
     # -- the clocks ------------------------------------------------------------------------------
@@ -36,8 +35,6 @@ class TimeSplit(L.Callback):
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         self._batch_start = time.perf_counter()
-        if self._first_step is None:
-            self._first_step = trainer.global_step
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         now = time.perf_counter()
@@ -93,8 +90,7 @@ class TimeSplit(L.Callback):
         elapsed = now - self._fit_start
         total = trainer.max_steps if trainer.max_steps and trainer.max_steps > 0 else None
         left = ""
-        done = trainer.global_step - (self._first_step or 0)  # this fit's steps, also after a resume
-        if total and done > 0:
-            left = f", ~{(total - trainer.global_step) * elapsed / done / 60:.1f} min left"
+        if total and self.steps:  # the rate of this fit's own steps: a resumed run starts past step 0
+            left = f", ~{(total - trainer.global_step) * elapsed / self.steps / 60:.1f} min left"
         print(f"[train] step {trainer.global_step}{f'/{total}' if total else ''}: loss {loss:.4g}, "
               f"{rate:.1f} steps/s in steps, {elapsed / 60:.1f} min{left}", file=sys.stderr, flush=True)
