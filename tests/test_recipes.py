@@ -140,6 +140,26 @@ def test_pushforward_from_an_early_window_starts_at_its_own_first_frame(tiny_dat
     assert not torch.equal(starts[1][second], late.frames[:, 5])
 
 
+def test_pushforward_skips_the_steps_every_early_window_is_held_through(tiny_dataset):
+    split = open_split(tiny_dataset, "train")
+    windows = WindowDataset(split, radius=0.08, history=5, lead=3, horizon=1, early_windows=True)
+    none, one = windows[0], windows[1]  # 0 and 1 real frames before the history: held 3 and 2 steps
+    batch = Batch.from_data_list([none, one])
+    module = SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, noise_std=0.0,
+                             pushforward={"steps": [-1], "unrolls": [3], "probs": [1]})
+    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(lead=3), global_step=100)
+    starts = record_starts(module)
+    module._losses(batch)
+    assert len(starts) == 2  # the two steps both windows wait through are not computed
+    first, second = batch.batch == 0, batch.batch == 1
+    # the pushed step starts from both windows' first states; the trained step finds the first
+    # window still held there and the second pushed once from it
+    torch.testing.assert_close(starts[0][first], none.frames[:, 3 + 5])
+    torch.testing.assert_close(starts[0][second], one.frames[:, 2 + 5])
+    torch.testing.assert_close(starts[1][first], none.frames[:, 3 + 5])
+    assert not torch.equal(starts[1][second], one.frames[:, 2 + 5])
+
+
 def test_pushforward_asks_for_the_frames_it_needs(tiny_dataset):
     module = module_with(pushforward={"steps": [-1], "unrolls": [3], "probs": [1]}, lead=1)
     with pytest.raises(ValueError, match="data.lead >= 3"):

@@ -164,8 +164,10 @@ class SimulatorModule(L.LightningModule):
         # the targets move with the start frame's noise (as in GNS), less the corrected fraction
         offset = (1 - self.hparams.position_correction) * (noisy_last - window[-1])
         state = initial = State(noisy_last, velocity.transpose(0, 1).contiguous(), batch.particle_type, batch.batch)
+        # the steps every window of the batch is still held through change nothing: skip them
+        first = 0 if wait is None else int(wait.min())
         with torch.no_grad():
-            for j in range(pushed):
+            for j in range(first, pushed):
                 state = self.model.step(state, kinematic_position=frames[:, start + j + 1])
                 if wait is not None:  # the windows whose own start (frame start + wait) is still ahead
                     hold = wait > j
