@@ -118,16 +118,23 @@ def test_early_windows_fill_in_the_lead_with_the_first_frame(tiny_dataset):
     assert int(late.lead_frames[0]) == 3  # far enough in: the whole lead is real
 
 
-def test_pushforward_from_an_early_window_starts_at_its_own_first_frame(tiny_dataset):
-    split = open_split(tiny_dataset, "train")
-    windows = WindowDataset(split, radius=0.08, history=5, lead=3, horizon=1, early_windows=True)
-    early, late = windows[1], windows[len(windows) - 1]  # 1 and 3 real frames before the history
-    batch = Batch.from_data_list([early, late])
+def pushed_three_steps(windows: list) -> tuple[Batch, list[torch.Tensor]]:
+    """Batch the windows, push them 3 steps (no noise, data.lead=3) and train on the next:
+    the batch and the start position of every model step taken."""
+    batch = Batch.from_data_list(windows)
     module = SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, noise_std=0.0,
                              pushforward={"steps": [-1], "unrolls": [3], "probs": [1]})
     module._trainer = SimpleNamespace(datamodule=SimpleNamespace(lead=3), global_step=100)
     starts = record_starts(module)
     module._losses(batch)
+    return batch, starts
+
+
+def test_pushforward_from_an_early_window_starts_at_its_own_first_frame(tiny_dataset):
+    split = open_split(tiny_dataset, "train")
+    windows = WindowDataset(split, radius=0.08, history=5, lead=3, horizon=1, early_windows=True)
+    early, late = windows[1], windows[len(windows) - 1]  # 1 and 3 real frames before the history
+    batch, starts = pushed_three_steps([early, late])
     assert len(starts) == 4  # three pushed steps and the trained one
     first, second = batch.batch == 0, batch.batch == 1
     # the early window waits two steps at the first state its frames hold (history from the
@@ -144,12 +151,7 @@ def test_pushforward_skips_the_steps_every_early_window_is_held_through(tiny_dat
     split = open_split(tiny_dataset, "train")
     windows = WindowDataset(split, radius=0.08, history=5, lead=3, horizon=1, early_windows=True)
     none, one = windows[0], windows[1]  # 0 and 1 real frames before the history: held 3 and 2 steps
-    batch = Batch.from_data_list([none, one])
-    module = SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, noise_std=0.0,
-                             pushforward={"steps": [-1], "unrolls": [3], "probs": [1]})
-    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(lead=3), global_step=100)
-    starts = record_starts(module)
-    module._losses(batch)
+    batch, starts = pushed_three_steps([none, one])
     assert len(starts) == 2  # the two steps both windows wait through are not computed
     first, second = batch.batch == 0, batch.batch == 1
     # the pushed step starts from both windows' first states; the trained step finds the first
