@@ -220,6 +220,24 @@ def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(dataset, tmp_path):
     assert torch.load(last, weights_only=False)["global_step"] == 10
 
 
+def test_gradient_norm_is_logged_before_clipping_with_each_batchs_pushed_steps(dataset, tmp_path):
+    """train/grad_norm is the gradient's norm as the loss made it: with a clip far below it
+    (trainer.gradient_clip_val), every logged norm is still above the clip. train/pushed is the
+    number of pushed steps each batch drew from the schedule."""
+    run = tmp_path / "run"
+    train(tmp_path, "data=folder", f"data.root={dataset}", "trainer=cpu", "trainer.max_steps=8",
+          "trainer.val_check_interval=8", "recipe=pushforward", "module.pushforward.steps=[-1,-1]",
+          "module.pushforward.unrolls=[0,2]", "module.pushforward.probs=[1,1]", "data.lead=2",
+          "+trainer.gradient_clip_val=1e-6", f"hydra.run.dir={run}", *TINY)
+    events = EventAccumulator(str(run / "tensorboard"))
+    events.Reload()
+    norms = [e.value for e in events.Scalars("train/grad_norm")]
+    pushed = [e.value for e in events.Scalars("train/pushed")]
+    assert len(norms) == len(pushed) == 8
+    assert min(norms) > 1e-3  # a million times the clip: logged before clipping
+    assert set(pushed) <= {0.0, 2.0}
+
+
 def test_validation_rollouts_score_the_averaged_weights(dataset, tmp_path):
     """With an EMA callback the checkpoint holds the averaged weights, and the validation rollout
     that chooses checkpoints must score those same weights, not the raw ones."""

@@ -103,6 +103,7 @@ class SimulatorModule(L.LightningModule):
         self.model.wall_gradient = wall_gradient
         self.loss = instantiate(loss)
         self.pushforward = Pushforward(**pushforward) if pushforward else None
+        self._pushed = 0  # the latest training batch's pushed steps, logged as train/pushed
         self.unroll = Unroll(**unroll) if unroll else None
         if density_weight < 0:
             raise ValueError(f"density_weight={density_weight}: a loss weight cannot be negative")
@@ -198,6 +199,7 @@ class SimulatorModule(L.LightningModule):
     def _losses(self, batch) -> dict[str, torch.Tensor]:
         pushed = self.pushforward.draw(self.global_step) if self.pushforward is not None and self.training else 0
         length = self.unroll.length(self.global_step) if self.unroll is not None and self.training else 1
+        self._pushed = pushed
         if pushed or length > 1:
             terms = {f"forward_{key}": value for key, value in self._multistep_forward(batch, pushed, length).items()}
             loss = terms["forward_loss"]
@@ -229,7 +231,17 @@ class SimulatorModule(L.LightningModule):
             )
         self.log_dict({f"train/{k}": v.detach() for k, v in terms.items() if k != "loss"}, batch_size=batch.num_graphs)
         self.log("train/loss", terms["loss"].detach(), batch_size=batch.num_graphs, prog_bar=True)
+        if self.pushforward is not None:
+            self.log("train/pushed", float(self._pushed), batch_size=batch.num_graphs)
         return terms["loss"]
+
+    def on_before_optimizer_step(self, optimizer) -> None:
+        # the whole gradient's norm as the loss made it, before `trainer.gradient_clip_val` clips it:
+        # a batch pushed through a long rollout can have 10-100 times a one-step batch's
+        grads = [p.grad.detach() for p in self.parameters() if p.grad is not None]
+        if grads:
+            norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+            self.log("train/grad_norm", norm, batch_size=1)
 
     def validation_step(self, batch, batch_idx: int) -> None:
         # eager: a few no-grad rollouts every validation would not repay compiling their graphs
