@@ -240,8 +240,7 @@ class SimulatorModule(L.LightningModule):
         # a batch pushed through a long rollout can have 10-100 times a one-step batch's
         grads = [p.grad.detach() for p in self.parameters() if p.grad is not None]
         if grads:
-            norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
-            self.log("train/grad_norm", norm, batch_size=1)
+            self.log("train/grad_norm", torch.nn.utils.get_total_norm(grads), batch_size=1)
 
     def validation_step(self, batch, batch_idx: int) -> None:
         # eager: a few no-grad rollouts every validation would not repay compiling their graphs
