@@ -2,7 +2,9 @@
 ``python train.py -m loss=dl1,dl2,dl3,dl4``. Returns the best validation loss (for sweepers).
 
 ``init_from=<checkpoint>`` starts from a checkpoint's weights with a fresh optimiser, schedule and
-step count (a fine-tune, e.g. a longer schedule for a finished run); ``resume=`` continues a run.
+step count (a fine-tune, e.g. a longer schedule for a finished run); with ``init_grow=true`` the
+model may be deeper than the checkpoint's (R-GNS: the added reversible blocks start as the
+identity, so the run starts from the checkpoint's predictions); ``resume=`` continues a run.
 
 Every run ends with ``checkpoints/last.ckpt``; one stopped by SIGTERM or Ctrl-C finishes its step,
 saves it, says where it is and exits with 143 / 130 (rgns.training.checkpointing)."""
@@ -32,7 +34,9 @@ def main(cfg: DictConfig) -> float | None:
         if cfg.resume:
             raise ValueError("init_from and resume both set: resume= continues a run (its optimiser, schedule and "
                              "step), init_from= starts a new one from a checkpoint's weights; give one")
-        warm_start(module, cfg.init_from)
+        warm_start(module, cfg.init_from, grow=cfg.init_grow)
+    elif cfg.init_grow:
+        raise ValueError("init_grow=true grows the model of init_from=<checkpoint>: set init_from")
     trainer = instantiate(
         cfg.trainer,
         logger=instantiate(cfg.logger),

@@ -15,6 +15,8 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import make_metadata
+from rgns.models import State
+from test_models import random_state
 from rgns.training.module import CheckpointError, SimulatorModule, warm_start
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -175,6 +177,16 @@ def test_init_from_starts_a_new_run_from_a_checkpoints_weights(dataset, tmp_path
     both = train(tmp_path, *common, "trainer.max_steps=3", f"init_from={first}", f"resume={first}",
                  f"hydra.run.dir={tmp_path / 'fourth'}", check=False)
     assert both.returncode != 0 and "init_from and resume both set" in both.stderr
+    # a deeper R-GNS with init_grow: the checkpoint's blocks, then one added (train.py passes the option on)
+    train(tmp_path, *common, "trainer.max_steps=3", "module.optimizer.lr=0.0", "module.scheduler=null",
+          f"init_from={first}", "init_grow=true", "model.layers=3", f"hydra.run.dir={tmp_path / 'fifth'}")
+    grown = torch.load(tmp_path / "fifth" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    assert set(grown) - set(before["state_dict"]) == {n for n in grown if n.startswith("model.processor.blocks.2.")}
+    for name, value in before["state_dict"].items():
+        assert torch.equal(grown[name], value), name
+    alone = train(tmp_path, *common, "trainer.max_steps=3", "init_grow=true", f"hydra.run.dir={tmp_path / 'sixth'}",
+                  check=False)
+    assert alone.returncode != 0 and "init_grow=true grows the model of init_from" in alone.stderr
 
 
 def test_warm_start_fills_only_the_parameters_an_option_starts_at_zero(tmp_path):
@@ -203,6 +215,58 @@ def test_warm_start_fills_only_the_parameters_an_option_starts_at_zero(tmp_path)
     torch.save({"state_dict": state}, tmp_path / "short.ckpt")
     with pytest.raises(CheckpointError, match="short.ckpt: its weights do not fit"):
         warm_start(module(True), str(tmp_path / "short.ckpt"))
+
+
+def test_init_grow_adds_identity_blocks_that_predict_what_the_shallower_model_did(tmp_path):
+    """A 2-block R-GNS checkpoint warm-starts a 4-block one with init_grow: blocks 0-1 are the
+    checkpoint's, blocks 2-3 keep their identity initialisation, and the deeper model's forward
+    and inverse steps are the shallower one's. Moved off the identity, the added blocks change
+    the step. Without init_grow the deeper model is refused, as is growth that adds nothing
+    or a model whose blocks do not start as the identity."""
+    def module(layers: int, zero_init: bool = True) -> SimulatorModule:
+        model = {"_target_": "rgns.models.RGNS", "latent": 16, "layers": layers, "couplings": "pairwise",
+                 "galilean": True, "zero_init": zero_init, "edges": "updated"}
+        return SimulatorModule(model, dict(make_metadata(), gravity=[0.0, -9.81]),
+                               {"_target_": "rgns.training.losses.LossDesign", "name": "DL4"},
+                               {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}).double()
+
+    source = module(2)
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for parameter in source.parameters():
+            parameter.add_(0.1 * torch.randn(parameter.shape, generator=generator, dtype=parameter.dtype))
+    path = tmp_path / "shallow.ckpt"
+    torch.save({"state_dict": source.state_dict()}, path)
+    grown = module(4)
+    initial = {name: value.clone() for name, value in grown.state_dict().items()}
+    warm_start(grown, str(path), grow=True)
+    added = {name for name in initial if name.startswith(("model.processor.blocks.2.", "model.processor.blocks.3.",
+                                                          "model.processor.edge_updates.2.",
+                                                          "model.processor.edge_updates.3."))}
+    assert added and set(grown.state_dict()) == set(source.state_dict()) | added
+    for name, value in grown.state_dict().items():
+        assert torch.equal(value, initial[name] if name in added else source.state_dict()[name]), name
+
+    state = random_state(kinematic=0)
+    state = State(state.position.double(), state.velocity_history.double(), state.particle_type, state.batch)
+    for direction in ("step", "inverse_step"):
+        before, after = getattr(source.model, direction)(state), getattr(grown.model, direction)(state)
+        assert before.velocity_history.abs().max() > 0
+        assert torch.allclose(after.velocity_history, before.velocity_history, rtol=0, atol=1e-12), direction
+        assert torch.allclose(after.position, before.position, rtol=0, atol=1e-12), direction
+    with torch.no_grad():
+        for name, parameter in grown.named_parameters():
+            if name.startswith("model.processor.blocks.2."):
+                parameter.add_(0.1 * torch.randn(parameter.shape, generator=generator, dtype=parameter.dtype))
+    moved = grown.model.step(state).velocity_history
+    assert (moved - source.model.step(state).velocity_history).abs().max() > 1e-6
+
+    with pytest.raises(CheckpointError, match="shallow.ckpt: its weights do not fit"):
+        warm_start(module(4), str(path))
+    with pytest.raises(CheckpointError, match="shallow.ckpt: init_grow=true, but"):
+        warm_start(module(2), str(path), grow=True)
+    with pytest.raises(CheckpointError, match="shallow.ckpt: init_grow=true, but"):
+        warm_start(module(4, zero_init=False), str(path), grow=True)
 
 
 def test_non_finite_loss_stops_and_keeps_the_last_checkpoint(dataset, tmp_path):

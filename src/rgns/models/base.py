@@ -119,6 +119,14 @@ class Simulator(nn.Module):
         initialised), so the network with the checkpoint's weights computes what it computed."""
         return set()
 
+    def warm_start_added(self, present: set[str]) -> set[str]:
+        """Names of parameters (as in :meth:`state_dict`) that a warm start with ``init_grow``
+        may find missing in a checkpoint holding ``present``: those of layers this model has past
+        the checkpoint's, when they start as the identity, so the deeper network with the
+        checkpoint's weights computes what the shallower one computed. None here: only a model
+        whose added layers start as the identity can grow."""
+        return set()
+
     def node_conditions(self, position: Tensor, particle_type: Tensor) -> Tensor:
         """Static node inputs: distance to the walls over R, clipped to [-1, 1], and the type embedding.
 

@@ -121,6 +121,7 @@ class RGNS(Simulator):
             raise ValueError("galilean needs couplings='pairwise' (pair terms to read in a rest frame) and "
                              "encoder='ilp' (a boost must move the latent along fixed directions)")
         self.galilean = bool(galilean)
+        self.zero_init = bool(zero_init)
         self.processor = RRMP(latent, layers, self.condition_channels, hidden, hidden_layers, edges,
                               memory_saving, zero_init, node_norm, pairwise=couplings == "pairwise",
                               wall_channels=2 * self.dim)  # node_conditions: the wall distances first
@@ -163,6 +164,16 @@ class RGNS(Simulator):
     def warm_start_optional(self) -> set[str]:
         """See :meth:`~rgns.models.base.Simulator.warm_start_optional`: the density condition's map."""
         return {"density_encoder.weight"} if self.density_condition else set()
+
+    def warm_start_added(self, present: set[str]) -> set[str]:
+        """See :meth:`~rgns.models.base.Simulator.warm_start_added`: with ``zero_init`` every
+        reversible block starts as the identity, so the blocks (and their edge updates) past the
+        checkpoint's ``processor.blocks`` may be added after them."""
+        if not self.zero_init:
+            return set()
+        depth = len({name.split(".")[2] for name in present if name.startswith("processor.blocks.")})
+        return {name for name in self.state_dict()
+                if name.startswith(("processor.blocks.", "processor.edge_updates.")) and int(name.split(".")[2]) >= depth}
 
     def to_basis(self, velocity_history: Tensor) -> Tensor:
         """Physical ``V [N, k, D]`` -> the node features ``[N, k, D]`` the ILP reads.

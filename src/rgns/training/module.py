@@ -368,7 +368,7 @@ def load_simulator(path: str, map_location: str = "cpu"):
     }
 
 
-def warm_start(module: SimulatorModule, path: str) -> None:
+def warm_start(module: SimulatorModule, path: str, grow: bool = False) -> None:
     """Load the weights of the checkpoint at ``path`` into ``module`` (and nothing else: the
     optimiser, schedule and step count of the run start afresh). With weight averaging the
     checkpoint's weights are the averaged ones, which is what its validation scored.
@@ -376,10 +376,21 @@ def warm_start(module: SimulatorModule, path: str) -> None:
     Raises :class:`CheckpointError` naming the file when it is not a readable rgns checkpoint or
     its network does not fit the module's (another model, width or depth). Parameters the model
     lists in ``warm_start_optional`` (an option that starts as a no-op) keep their initial values
-    when the checkpoint lacks them."""
+    when the checkpoint lacks them. With ``grow`` the model may be deeper than the checkpoint's:
+    the layers it adds (``warm_start_added``: R-GNS's reversible blocks past the checkpoint's,
+    which start as the identity) keep their initial values, so it starts computing what the
+    checkpoint's model computes; a model that adds no such layers is refused."""
     state = _read_checkpoint(path, "checkpoint to start from (init_from)")["state_dict"]
     own = module.state_dict()
     optional = {f"model.{name}" for name in module.model.warm_start_optional()}
+    if grow:
+        present = {name.removeprefix("model.") for name in state if name.startswith("model.")}
+        added = {f"model.{name}" for name in module.model.warm_start_added(present)}
+        if not added:
+            raise CheckpointError(f"{path}: init_grow=true, but this run's {type(module.model).__name__} adds no "
+                                  "layers that start as the identity to the checkpoint's (the same depth, a model "
+                                  "that cannot grow, or zero_init=false): drop init_grow or raise model.layers")
+        optional |= added
     state = {**{name: own[name] for name in optional if name not in state}, **state}
     try:
         module.load_state_dict(state)
