@@ -16,7 +16,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from conftest import make_metadata
 from rgns.models import State
-from test_models import random_state
+from test_models import perturb, random_state
 from rgns.training.module import CheckpointError, SimulatorModule, warm_start
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -189,15 +189,19 @@ def test_init_from_starts_a_new_run_from_a_checkpoints_weights(dataset, tmp_path
     assert alone.returncode != 0 and "init_grow=true grows the model of init_from" in alone.stderr
 
 
+def rgns_module(**model) -> SimulatorModule:
+    """A module around a small pairwise R-GNS (16 wide, 2 blocks unless ``model`` says otherwise)."""
+    model = {"_target_": "rgns.models.RGNS", "latent": 16, "layers": 2, "couplings": "pairwise", **model}
+    return SimulatorModule(model, dict(make_metadata(), gravity=[0.0, -9.81]),
+                           {"_target_": "rgns.training.losses.LossDesign", "name": "DL4"},
+                           {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3})
+
+
 def test_warm_start_fills_only_the_parameters_an_option_starts_at_zero(tmp_path):
     """A checkpoint without the density condition warm-starts a model with it (that map keeps its
     zeros, the rest is the checkpoint's); a checkpoint lacking any other weight is refused."""
     def module(density: bool) -> SimulatorModule:
-        model = {"_target_": "rgns.models.RGNS", "latent": 16, "layers": 2, "couplings": "pairwise",
-                 "density_condition": density}
-        return SimulatorModule(model, dict(make_metadata(), gravity=[0.0, -9.81]),
-                               {"_target_": "rgns.training.losses.LossDesign", "name": "DL4"},
-                               {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3})
+        return rgns_module(density_condition=density)
 
     source = module(False)
     with torch.no_grad():
@@ -224,17 +228,10 @@ def test_init_grow_adds_identity_blocks_that_predict_what_the_shallower_model_di
     the step. Without init_grow the deeper model is refused, as is growth that adds nothing
     or a model whose blocks do not start as the identity."""
     def module(layers: int, zero_init: bool = True) -> SimulatorModule:
-        model = {"_target_": "rgns.models.RGNS", "latent": 16, "layers": layers, "couplings": "pairwise",
-                 "galilean": True, "zero_init": zero_init, "edges": "updated"}
-        return SimulatorModule(model, dict(make_metadata(), gravity=[0.0, -9.81]),
-                               {"_target_": "rgns.training.losses.LossDesign", "name": "DL4"},
-                               {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}).double()
+        return rgns_module(layers=layers, galilean=True, zero_init=zero_init, edges="updated").double()
 
     source = module(2)
-    generator = torch.Generator().manual_seed(0)
-    with torch.no_grad():
-        for parameter in source.parameters():
-            parameter.add_(0.1 * torch.randn(parameter.shape, generator=generator, dtype=parameter.dtype))
+    perturb(source)
     path = tmp_path / "shallow.ckpt"
     torch.save({"state_dict": source.state_dict()}, path)
     grown = module(4)
@@ -254,10 +251,7 @@ def test_init_grow_adds_identity_blocks_that_predict_what_the_shallower_model_di
         assert before.velocity_history.abs().max() > 0
         assert torch.allclose(after.velocity_history, before.velocity_history, rtol=0, atol=1e-12), direction
         assert torch.allclose(after.position, before.position, rtol=0, atol=1e-12), direction
-    with torch.no_grad():
-        for name, parameter in grown.named_parameters():
-            if name.startswith("model.processor.blocks.2."):
-                parameter.add_(0.1 * torch.randn(parameter.shape, generator=generator, dtype=parameter.dtype))
+    perturb(grown.model.processor.blocks[2], seed=1)
     moved = grown.model.step(state).velocity_history
     assert (moved - source.model.step(state).velocity_history).abs().max() > 1e-6
 
