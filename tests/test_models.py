@@ -59,6 +59,7 @@ def training_batch(dim: int = 2, graphs: int = 2, seed: int = 0) -> Batch:
 
 @pytest.mark.parametrize("cls,options", [(GNS, {}), (RGNS, {}), (SepGNS, {}), (GNS, dict(edge_velocity=True)),
                                          (RGNS, dict(edge_velocity=True)), (GNS, dict(decoder="pairwise")),
+                                         (GNS, dict(decoder="pairwise", galilean=True)),
                                          (RGNS, dict(couplings="pairwise"))])
 @pytest.mark.parametrize("dim", [2, 3])
 def test_contract_on_a_training_batch(cls, options, dim):
@@ -328,6 +329,38 @@ def test_galilean_pair_terms_read_relative_motion_only(dim, basis):
         RGNS(gravity_metadata(dim), galilean=True, **SMALL)  # node couplings
     with pytest.raises(ValueError, match="galilean"):
         RGNS(gravity_metadata(dim), galilean=True, couplings="pairwise", encoder="mlp", **SMALL)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_gns_galilean_pair_terms_read_relative_motion_only(dim):
+    """GNS galilean=True (pairwise decoder): away from the walls, moving every velocity of the
+    history by the same u moves the predicted velocity by u and nothing else (to round-off);
+    without it, or within R of a wall (whose term reads the absolute velocity), it does not. The
+    pair terms still cancel in the sum over the particles."""
+    state = random_state(dim=dim, seed=3, kinematic=0)
+    position, history, types = state.position.double(), state.velocity_history.double(), state.particle_type
+    inside = ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)  # farther than R from every wall
+    u = torch.linspace(2e-3, -3e-3, dim, dtype=torch.float64)  # about 2x the velocity std
+    gaps = {}
+    for galilean in (True, False):
+        model = GNS(gravity_metadata(dim), decoder="pairwise", galilean=galilean, **SMALL).double()
+        assert model.edge_velocity == galilean  # implied by galilean, off by default
+        perturb(model, seed=dim)
+        for name, index in (("inside", inside.nonzero().squeeze(-1)), ("all", torch.arange(len(position)))):
+            p, v, t = position[index], history[index], types[index]
+            graph = radius_graph(p, model.radius)
+            with torch.no_grad():
+                plain, moved = model.next_velocity(p, v, t, graph), model.next_velocity(p, v + u, t, graph)
+            change = plain - v[:, -1] - model.gravity_reference.double()  # the network's share of the step
+            assert change.abs().max() > 1e-6
+            if galilean and name == "inside":  # pair terms alone: they sum to zero
+                assert change.sum(0).abs().max() < 1e-9 * change.abs().sum()
+            gaps[galilean, name] = float((moved - plain - u).abs().max() / change.abs().max())
+    assert gaps[True, "inside"] < 1e-10
+    assert gaps[True, "all"] > 1e-4  # the wall term sees the boost
+    assert gaps[False, "inside"] > 1e-4
+    with pytest.raises(ValueError, match="galilean"):
+        GNS(gravity_metadata(dim), galilean=True, **SMALL)  # node decoder
 
 
 def test_density_condition_starts_as_the_network_without_it_then_reads_each_ends_density():
@@ -621,6 +654,7 @@ def test_a_collapsed_rollout_stops_and_repeats_its_last_frame(caplog):
 # ---- compiled networks (module.compile) ------------------------------------------------------
 
 @pytest.mark.parametrize("cls, options", [(GNS, {}), (RGNS, {}), (GNS, {"decoder": "pairwise"}),
+                                          (GNS, {"decoder": "pairwise", "galilean": True}),
                                           (RGNS, {"couplings": "pairwise"}),
                                           (RGNS, {"couplings": "pairwise", "galilean": True})])
 def test_compiled_network_computes_what_the_eager_one_does(cls, options):

@@ -46,6 +46,16 @@ class GNS(Simulator):
             Its reference is gravity (``known_gravity`` implied): with pair terms that cancel, the
             dataset's mean acceleration (gravity less the floor's support, averaged) would leave
             every falling body falling too slowly. (default: ``"node"``)
+        galilean (bool, optional): with ``decoder="pairwise"``, everything the pair terms read is
+            relative motion: the node encoder reads the ``k - 1`` accelerations of the history over
+            their std and not the velocities, the edges read the relative newest velocity
+            (``edge_velocity`` implied), and only the wall term, which acts within R of a wall,
+            also reads the absolute newest velocity over the velocity std. Moving every velocity
+            of the history by the same ``u`` then moves the predicted velocity by ``u`` and
+            changes nothing else, away from the walls: a drop in free fall feels no internal
+            forces that grow with its speed. R-GNS's ``galilean`` does the same through its linear
+            encoder. Changes the node encoder's and the wall term's inputs, so a checkpoint without
+            it does not warm-start this model. (default: :obj:`False`)
     """
 
     display_name = "GNS"
@@ -53,19 +63,23 @@ class GNS(Simulator):
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, latent: int = 128,
                  layers: int = 10, hidden_layers: int = 2, embedding: int = 16, hard_walls: bool = False,
                  basis: str = "velocity", known_gravity: bool = False, edge_velocity: bool = False,
-                 decoder: str = "node"):
+                 decoder: str = "node", galilean: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
         if basis not in ("velocity", "differences"):
             raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
         if decoder not in ("node", "pairwise"):
             raise ValueError(f"decoder must be 'node' or 'pairwise', got {decoder!r}")
         self.basis, self.pairwise = basis, decoder == "pairwise"
+        if galilean and not self.pairwise:
+            raise ValueError("galilean needs decoder='pairwise': with a node decoder every particle's output reads "
+                             "its own absolute velocity, so there are no pair terms to read in a rest frame")
+        self.galilean = bool(galilean)
         known_gravity = known_gravity or self.pairwise
         self.known_gravity = bool(known_gravity)
-        self.edge_velocity = bool(edge_velocity)
+        self.edge_velocity = bool(edge_velocity) or self.galilean
         if self.known_gravity:  # what a zero output of the decoder stands for (computed, not saved in checkpoints)
             self.register_buffer("gravity_reference", dataset_gravity(metadata), persistent=False)  # [D]
-        node_in = history * self.dim + self.condition_channels
+        node_in = (history - self.galilean) * self.dim + self.condition_channels  # galilean: no velocity, k - 1 accelerations
         self.node_encoder = mlp(node_in, latent, latent, hidden_layers)
         self.edge_encoder = mlp(edge_channels(self.dim, self.edge_velocity), latent, latent, hidden_layers)
         self.processor = nn.ModuleList(InteractionNetwork(latent, hidden_layers) for _ in range(layers))
@@ -73,7 +87,8 @@ class GNS(Simulator):
             edge_in = 2 * latent + edge_channels(self.dim, self.edge_velocity)
             self.decoder = mlp(edge_in, latent, self.dim, hidden_layers, layer_norm=False)  # psi, per edge
             self.decoder[-1] = nn.Linear(latent, self.dim, bias=False)  # a bias would cancel in psi_ij - psi_ji
-            self.wall_decoder = mlp(latent, latent, self.dim, hidden_layers, layer_norm=False)
+            wall_in = latent + self.dim * self.galilean  # galilean: the wall term also reads v^t
+            self.wall_decoder = mlp(wall_in, latent, self.dim, hidden_layers, layer_norm=False)
         else:
             self.decoder = mlp(latent, latent, self.dim, hidden_layers, layer_norm=False)
 
@@ -85,7 +100,9 @@ class GNS(Simulator):
     def encode(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                geometry: Tensor) -> tuple[Tensor, Tensor]:
         """Node and edge latents ``[N, C]``, ``[E, C]`` from the state and the edge features (:meth:`geometry`)."""
-        if self.basis == "velocity":
+        if self.galilean:  # the accelerations alone: to_differences' slots before the newest velocity's
+            velocities = self.to_differences(velocity_history, anchor=self.history - 1)[:, :-1].flatten(1)  # [N, (k-1) D]
+        elif self.basis == "velocity":
             velocities = self.normalise_velocity(velocity_history).flatten(1)  # [N, k D]
         else:
             velocities = self.to_differences(velocity_history, anchor=self.history - 1).flatten(1)  # [N, k D]
@@ -98,9 +115,10 @@ class GNS(Simulator):
         return x
 
     def decode(self, x: Tensor, position: Tensor | None = None, edge_index: Tensor | None = None,
-               geometry: Tensor | None = None) -> Tensor:
+               geometry: Tensor | None = None, velocity: Tensor | None = None) -> Tensor:
         """The physical acceleration ``[N, D]``; the pairwise decoder also reads the scene (the
-        positions, the graph and its edge features)."""
+        positions, the graph and its edge features) and, with ``galilean``, the wall term the
+        newest velocity ``velocity [N, D]``."""
         reference = self.gravity_reference if self.known_gravity else self.acc_mean  # [D]
         if not self.pairwise:
             return self.decoder(x) * self.acc_std_noisy + reference
@@ -110,12 +128,13 @@ class GNS(Simulator):
         back = into[reverse_edges(edge_index, x.size(0))]
         pairs = torch.zeros_like(position).index_add_(0, receiver, into - back)  # [N, D], sums to zero
         near = wall_gate(wall_distance(position, self.bounds, self.radius))  # [N, 1]: 1 at a wall, 0 from R on
-        return (pairs + near * self.wall_decoder(x)) * self.acc_std_noisy + reference
+        wall_in = torch.cat([x, self.normalise_velocity(velocity)], -1) if self.galilean else x
+        return (pairs + near * self.wall_decoder(wall_in)) * self.acc_std_noisy + reference
 
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
         geometry = self.geometry(position, velocity_history, edge_index)  # [E, D + 1 (+ D + 1)]
         x, edge_attr = self.encode(position, velocity_history, particle_type, geometry)
         x = self.process(x, edge_index, edge_attr)
-        acceleration = self.decode(x, position, edge_index, geometry)
+        acceleration = self.decode(x, position, edge_index, geometry, velocity_history[:, -1])
         return velocity_history[:, -1] + acceleration  # dt = 1
