@@ -221,6 +221,48 @@ def test_warm_start_fills_only_the_parameters_an_option_starts_at_zero(tmp_path)
         warm_start(module(True), str(tmp_path / "short.ckpt"))
 
 
+def test_average_of_checkpoints_is_the_mean_of_their_weights_and_loads(tmp_path):
+    """python -m rgns.training.average OUT A B: OUT's weights are A's and B's mean, it loads as a
+    simulator; a checkpoint of another model is refused naming the file, and OUT is not written."""
+    from rgns.training.average import main
+    from rgns.training.module import load_simulator
+
+    paths = []
+    for seed in (0, 1, 2):
+        torch.manual_seed(seed)
+        module = rgns_module()
+        with torch.no_grad():
+            for parameter in module.parameters():
+                parameter.normal_()
+        paths.append(tmp_path / f"run{seed}.ckpt")
+        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                    "optimizer_states": [{"state": {}}], "global_step": 10 + seed}, paths[-1])
+    out = tmp_path / "soup" / "mean.ckpt"
+    assert main([str(out), *map(str, paths)]) == 0
+    weights = [torch.load(path, weights_only=True)["state_dict"] for path in paths]
+    soup = torch.load(out, weights_only=True)
+    assert "optimizer_states" not in soup and soup["averaged_from"] == list(map(str, paths))
+    floats = [name for name, value in weights[0].items() if value.is_floating_point()]
+    assert len(floats) > 10
+    for name in floats:
+        torch.testing.assert_close(soup["state_dict"][name], sum(w[name] for w in weights) / 3, rtol=1e-6, atol=1e-7)
+    moved = [name for name in floats if not torch.equal(weights[0][name], weights[1][name])]  # the parameters
+    assert len(moved) > 10 and all(not torch.equal(soup["state_dict"][name], weights[0][name]) for name in moved)
+    simulator, _ = load_simulator(str(out))
+    torch.testing.assert_close(simulator.state_dict()["projection.weight"], soup["state_dict"]["model.projection.weight"])
+    # another width: refused, naming it; nothing written
+    wider = rgns_module(latent=24)
+    torch.save({"state_dict": wider.state_dict(), "hyper_parameters": dict(wider.hparams)}, tmp_path / "wide.ckpt")
+    refused = tmp_path / "refused.ckpt"
+    assert main([str(refused), str(paths[0]), str(tmp_path / "wide.ckpt")]) == 1
+    assert not refused.exists()
+    with pytest.raises(CheckpointError, match="wide.ckpt: another model"):
+        from rgns.training.average import average_checkpoints
+        average_checkpoints([str(paths[0]), str(tmp_path / "wide.ckpt")])
+    with pytest.raises(ValueError, match="at least two"):
+        average_checkpoints([str(paths[0])])
+
+
 def test_init_grow_adds_identity_blocks_that_predict_what_the_shallower_model_did(tmp_path):
     """A 2-block R-GNS checkpoint warm-starts a 4-block one with init_grow: blocks 0-1 are the
     checkpoint's, blocks 2-3 keep their identity initialisation, and the deeper model's forward

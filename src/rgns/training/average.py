@@ -1,0 +1,82 @@
+"""Uniform weight averages of checkpoints: the "model soup" of runs fine-tuned from one file.
+
+``python -m rgns.training.average OUT CKPT CKPT [CKPT ...]`` writes ``OUT``, a checkpoint whose
+weights are the mean of the given checkpoints' (their ``state_dict``: with weight averaging in
+training, the averaged weights each run validated and saved). Runs that share a start file and a
+small learning rate tend to stay in one basin, where their mean can score better than each; the
+average is only worth keeping where the scores say so (docs/pretrained.md, sixteenth session).
+
+``OUT`` loads wherever a trained checkpoint does (``evaluate.py ckpt_paths=[OUT]``,
+``init_from=OUT``); it holds no optimiser state, so it cannot be resumed. Every input must be an
+rgns checkpoint of the same model (the same ``model`` config and the same parameter names and
+shapes); a mismatch is refused naming the file, and ``OUT`` is written whole or not at all.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+import torch
+
+from rgns.data.contract import atomic_path
+from rgns.training.module import _NOT_A_CHECKPOINT, CheckpointError, _read_checkpoint
+
+
+def average_checkpoints(paths: list[str]) -> dict:
+    """The checkpoint dict whose ``state_dict`` is the mean of those of ``paths`` (floating
+    tensors averaged in float64, then cast back; integer buffers must agree); the rest is the
+    first file's, less its optimiser and scheduler states, plus ``averaged_from: paths``.
+
+    Raises :class:`CheckpointError` naming the file that is unreadable or differs from the first."""
+    if len(paths) < 2:
+        raise ValueError(f"averaging needs at least two checkpoints, got {len(paths)}")
+    first = _read_checkpoint(paths[0], "checkpoint to average")
+    config = first.get("hyper_parameters", {}).get("model") if isinstance(first.get("hyper_parameters"), dict) else None
+    if config is None:
+        raise CheckpointError(f"{paths[0]}: {_NOT_A_CHECKPOINT}")
+    reference = first["state_dict"]
+    total = {name: value.double() for name, value in reference.items() if value.is_floating_point()}
+    for path in paths[1:]:
+        other = _read_checkpoint(path, "checkpoint to average")
+        if other.get("hyper_parameters", {}).get("model") != config:
+            raise CheckpointError(f"{path}: another model than {paths[0]}'s ({other.get('hyper_parameters', {}).get('model')} "
+                                  f"against {config}): only runs of one model can be averaged")
+        weights = other["state_dict"]
+        if weights.keys() != reference.keys():
+            names = sorted(set(weights) ^ set(reference))[:5]
+            raise CheckpointError(f"{path}: its weights are not named as {paths[0]}'s (e.g. {names})")
+        for name, value in weights.items():
+            if value.shape != reference[name].shape:
+                raise CheckpointError(f"{path}: {name} has shape {tuple(value.shape)}, {paths[0]}'s "
+                                      f"{tuple(reference[name].shape)}")
+            if name in total:
+                total[name] += value.double()
+            elif not torch.equal(value, reference[name]):
+                raise CheckpointError(f"{path}: its {name} (not a weight: an integer buffer) differs from {paths[0]}'s")
+    averaged = dict(first)
+    averaged["state_dict"] = {name: (total[name] / len(paths)).to(value.dtype) if name in total else value
+                              for name, value in reference.items()}
+    for key in ("optimizer_states", "lr_schedulers", "current_model_state"):
+        averaged.pop(key, None)
+    averaged["averaged_from"] = [str(path) for path in paths]
+    return averaged
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m rgns.training.average", description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", help="the averaged checkpoint to write")
+    parser.add_argument("checkpoints", nargs="+", help="two or more checkpoints of one model")
+    args = parser.parse_args(argv)
+    try:
+        averaged = average_checkpoints(args.checkpoints)
+    except (CheckpointError, FileNotFoundError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    with atomic_path(args.out) as tmp:
+        torch.save(averaged, tmp)
+    print(f"{args.out}: the mean of {len(args.checkpoints)} checkpoints' weights")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
