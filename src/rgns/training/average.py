@@ -31,16 +31,16 @@ def average_checkpoints(paths: list[str]) -> dict:
     if len(paths) < 2:
         raise ValueError(f"averaging needs at least two checkpoints, got {len(paths)}")
     first = _read_checkpoint(paths[0], "checkpoint to average")
-    config = first.get("hyper_parameters", {}).get("model") if isinstance(first.get("hyper_parameters"), dict) else None
+    config = _model_config(first)
     if config is None:
         raise CheckpointError(f"{paths[0]}: {_NOT_A_CHECKPOINT}")
     reference = first["state_dict"]
     total = {name: value.double() for name, value in reference.items() if value.is_floating_point()}
     for path in paths[1:]:
         other = _read_checkpoint(path, "checkpoint to average")
-        if other.get("hyper_parameters", {}).get("model") != config:
-            raise CheckpointError(f"{path}: another model than {paths[0]}'s ({other.get('hyper_parameters', {}).get('model')} "
-                                  f"against {config}): only runs of one model can be averaged")
+        if _model_config(other) != config:
+            raise CheckpointError(f"{path}: another model than {paths[0]}'s ({_model_config(other)} against {config}): "
+                                  "only runs of one model can be averaged")
         weights = other["state_dict"]
         if weights.keys() != reference.keys():
             names = sorted(set(weights) ^ set(reference))[:5]
@@ -60,6 +60,12 @@ def average_checkpoints(paths: list[str]) -> dict:
         averaged.pop(key, None)
     averaged["averaged_from"] = [str(path) for path in paths]
     return averaged
+
+
+def _model_config(checkpoint: dict):
+    """The ``model`` config a checkpoint was trained with, or ``None`` where it has none."""
+    hparams = checkpoint.get("hyper_parameters")
+    return hparams.get("model") if isinstance(hparams, dict) else None
 
 
 def main(argv: list[str] | None = None) -> int:
