@@ -110,6 +110,20 @@ def test_rgns_starts_as_constant_velocity_in_both_directions():
     torch.testing.assert_close(model.oldest_velocity(*args), state.velocity_history[:, 0], rtol=0, atol=1e-8)
 
 
+def away_from_walls(position: torch.Tensor) -> torch.Tensor:
+    """``[N]``: the particles farther than R (0.1) from every wall of the unit box."""
+    return ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)
+
+
+def boost_case(dim: int):
+    """A fluid-only state in float64 (positions, velocity history, types), the particles away
+    from the walls, and a boost ``u`` of about 2x the velocity std: the rest-frame tests' case."""
+    state = random_state(dim=dim, seed=3, kinematic=0)
+    position = state.position.double()
+    u = torch.linspace(2e-3, -3e-3, dim, dtype=torch.float64)
+    return position, state.velocity_history.double(), state.particle_type, away_from_walls(position), u
+
+
 def gravity_metadata(dim: int = 2) -> dict:
     return dict(metadata(dim), gravity=[0.0] * (dim - 1) + [-9.81])  # 6.1e-5 per frame^2 at dt = 0.0025
 
@@ -240,7 +254,7 @@ def test_gns_pairwise_decoder_conserves_momentum_away_from_the_walls(dim, edge_v
     state = random_state(dim=dim, seed=dim, kinematic=0)
     position, history = state.position.double(), state.velocity_history.double()
     edge_index = radius_graph(position, model.radius)
-    inside = ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)  # farther than R from every wall
+    inside = away_from_walls(position)
     acceleration = model.next_velocity(position, history, state.particle_type, edge_index) - history[:, -1]
     gravity = model.gravity_reference.double()
     excess = (acceleration - gravity) / model.acc_std_noisy.double()  # [N, D]
@@ -274,7 +288,7 @@ def test_rgns_pairwise_couplings_conserve_momentum_away_from_the_walls_in_both_d
     state = random_state(dim=dim, seed=dim, kinematic=0)
     position, history = state.position.double(), state.velocity_history.double()
     gravity = model.gravity_shift.double()
-    inside = ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)  # farther than R from every wall
+    inside = away_from_walls(position)
     core = inside.nonzero().squeeze(-1)
     relabel = torch.full((len(position),), -1, dtype=torch.long)
     relabel[core] = torch.arange(len(core))
@@ -304,10 +318,7 @@ def test_galilean_pair_terms_read_relative_motion_only(dim, basis):
     """galilean=True: away from the walls, moving every velocity of the history by the same u moves
     both directions' predictions by u and nothing else (to round-off); without it, or within R of
     a wall (whose term reads the absolute velocity), it does not."""
-    state = random_state(dim=dim, seed=3, kinematic=0)
-    position, history, types = state.position.double(), state.velocity_history.double(), state.particle_type
-    inside = ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)  # farther than R from every wall
-    u = torch.linspace(2e-3, -3e-3, dim, dtype=torch.float64)  # about 2x the velocity std
+    position, history, types, inside, u = boost_case(dim)
     gaps = {}
     for galilean in (True, False):
         model = RGNS(gravity_metadata(dim), latent=16, layers=3, basis=basis, couplings="pairwise",
@@ -337,10 +348,7 @@ def test_gns_galilean_pair_terms_read_relative_motion_only(dim):
     history by the same u moves the predicted velocity by u and nothing else (to round-off);
     without it, or within R of a wall (whose term reads the absolute velocity), it does not. The
     pair terms still cancel in the sum over the particles."""
-    state = random_state(dim=dim, seed=3, kinematic=0)
-    position, history, types = state.position.double(), state.velocity_history.double(), state.particle_type
-    inside = ((position - 0.1 > 0.1) & (0.9 - position > 0.1)).all(-1)  # farther than R from every wall
-    u = torch.linspace(2e-3, -3e-3, dim, dtype=torch.float64)  # about 2x the velocity std
+    position, history, types, inside, u = boost_case(dim)
     gaps = {}
     for galilean in (True, False):
         model = GNS(gravity_metadata(dim), decoder="pairwise", galilean=galilean, **SMALL).double()

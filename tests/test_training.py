@@ -224,7 +224,7 @@ def test_warm_start_fills_only_the_parameters_an_option_starts_at_zero(tmp_path)
 def test_average_of_checkpoints_is_the_mean_of_their_weights_and_loads(tmp_path):
     """python -m rgns.training.average OUT A B: OUT's weights are A's and B's mean, it loads as a
     simulator; a checkpoint of another model is refused naming the file, and OUT is not written."""
-    from rgns.training.average import main
+    from rgns.training.average import average_checkpoints, main
     from rgns.training.module import load_simulator
 
     paths = []
@@ -257,7 +257,6 @@ def test_average_of_checkpoints_is_the_mean_of_their_weights_and_loads(tmp_path)
     assert main([str(refused), str(paths[0]), str(tmp_path / "wide.ckpt")]) == 1
     assert not refused.exists()
     with pytest.raises(CheckpointError, match="wide.ckpt: another model"):
-        from rgns.training.average import average_checkpoints
         average_checkpoints([str(paths[0]), str(tmp_path / "wide.ckpt")])
     with pytest.raises(ValueError, match="at least two"):
         average_checkpoints([str(paths[0])])

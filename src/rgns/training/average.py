@@ -25,7 +25,8 @@ from rgns.training.module import _NOT_A_CHECKPOINT, CheckpointError, _read_check
 def average_checkpoints(paths: list[str]) -> dict:
     """The checkpoint dict whose ``state_dict`` is the mean of those of ``paths`` (floating
     tensors averaged in float64, then cast back; integer buffers must agree); the rest is the
-    first file's, less its optimiser and scheduler states, plus ``averaged_from: paths``.
+    first file's, less its optimiser and scheduler states and its weights before averaging in
+    training (``current_model_state``), plus ``averaged_from: paths``.
 
     Raises :class:`CheckpointError` naming the file that is unreadable or differs from the first."""
     if len(paths) < 2:
