@@ -24,6 +24,7 @@ from rgns.data.contract import SPLITS, WATER, write_metadata, write_split
 from rgns.evaluation.baselines import Ballistic, ConstantVelocity
 from rgns.evaluation.methods import Method, _disambiguate, describe, find_checkpoints
 from rgns.evaluation.metrics import density_ratio
+from rgns.evaluation.compare import main as compare
 from rgns.evaluation.freefall import internal_accelerations
 from rgns.evaluation.rest import settled_pool
 from rgns.evaluation.walls import at_the_walls
@@ -435,6 +436,9 @@ def test_evaluate_sweep_writes_report_json_and_charts(trained):
                      | {f"Inverse {m}": r["horizons"][k]["inverse_mse"] for m, r in inverse.items()}, 1e3)
     assert summary["R-GNS 16x2"]["rollout_mse"] == forward["R-GNS 16x2"]["rollout_mse"]
     assert results["command"].startswith("python evaluate.py checkpoints_dir=")
+    # the paired comparison reads this file: its ratio is the rollout MSEs' (the baselines left out of the choice)
+    _, gns = compare([f"R={out}#R-GNS 16x2", f"G={out}#GNS 16x2", "--resamples", "10"])
+    assert gns["ratio"] == pytest.approx(forward["GNS 16x2"]["rollout_mse"] / forward["R-GNS 16x2"]["rollout_mse"])
 
 
 def test_evaluate_one_checkpoint_forward_task_only(trained, tmp_path):

@@ -1,3 +1,4 @@
+import json
 import math
 
 import pytest
@@ -107,3 +108,61 @@ def test_one_step_diagnostic_finds_gravity_missing_and_present():
         for row in rows:
             assert row["true_rms"] == pytest.approx(float(g.norm()), rel=1e-2)
             assert row["relative_error"] == pytest.approx(expected, abs=1e-2)
+
+
+def write_results(folder, per_trajectory: dict[str, list[float]], dataset="data", split="test", baselines=()):
+    """A results.json of evaluate.py's shape holding only what the comparison reads."""
+    folder.mkdir(parents=True, exist_ok=True)
+    methods = {label: {"rollout_mse_per_trajectory": v, "rollout_mse": sum(v) / len(v)} for label, v in per_trajectory.items()}
+    results = {"methods": {label: {"source": "baseline" if label in baselines else "model.ckpt"} for label in per_trajectory},
+               "datasets": {dataset: {"split": split, "forward": {"methods": methods}}}}
+    (folder / "results.json").write_text(json.dumps(results))
+    return folder
+
+
+def test_compare_pairs_trajectories_and_pools_splits(tmp_path, capsys):
+    from rgns.evaluation.compare import main
+
+    reference = [1.0, 4.0, 2.0, 8.0]
+    test_a = write_results(tmp_path / "a_test", {"A": reference, "Const. velocity": [9.0] * 4}, baselines={"Const. velocity"})
+    test_b = write_results(tmp_path / "b_test", {"B": [2 * x for x in reference]})  # twice A's error on every trajectory
+    test_c = write_results(tmp_path / "c_test", {"C": [0.5, 6.0, 1.0, 9.0]})
+    sel_a = write_results(tmp_path / "a_sel", {"A": [3.0, 1.0]}, split="selection")
+    sel_b = write_results(tmp_path / "b_sel", {"B": [6.0, 2.0]}, split="selection")
+    rows = main([f"A={test_a}", f"B={test_b}/results.json", f"C={test_c}", "--resamples", "2000"])
+    a, b, c = rows
+    assert "ratio" not in a and a["mean"] == pytest.approx(3.75)
+    # every trajectory twice the reference's: every resample's ratio is 2, so the interval is [2, 2]
+    assert (b["ratio"], b["low"], b["high"], b["lower"], b["higher"]) == (pytest.approx(2), pytest.approx(2),
+                                                                            pytest.approx(2), 0, 4)
+    assert c["ratio"] == pytest.approx(16.5 / 15) and c["low"] < 1 < c["high"] and (c["lower"], c["higher"]) == (2, 2)
+    assert "| B | 4 | 7500 | 2.000 | 2.000-2.000 | 0 / 4 |" in capsys.readouterr().out
+    # two splits pooled per name: six trajectories, still twice on each
+    (a, b) = main([f"A={test_a},{sel_a}", f"B={sel_b},{test_b}", "--reference", "B", "--resamples", "100"])
+    assert a["trajectories"] == 6 and a["ratio"] == pytest.approx(0.5) and a["high"] == pytest.approx(0.5)
+
+
+def test_compare_refuses_what_it_cannot_pair(tmp_path):
+    from rgns.evaluation.compare import CompareError, main
+
+    four = write_results(tmp_path / "four", {"A": [1.0, 2.0, 3.0, 4.0]})
+    three = write_results(tmp_path / "three", {"B": [1.0, 2.0, 3.0]})
+    other_split = write_results(tmp_path / "valid", {"B": [1.0, 2.0, 3.0, 4.0]}, split="valid")
+    two_models = write_results(tmp_path / "two", {"R-GNS": [1.0] * 4, "GNS": [2.0] * 4})
+    with pytest.raises(CompareError, match="B has 3 trajectories of data"):
+        main([f"A={four}", f"B={three}"])
+    with pytest.raises(CompareError, match="compare like with like"):
+        main([f"A={four}", f"B={other_split}"])
+    with pytest.raises(CompareError, match=r"two/results.json: data holds 2 methods .*RESULTS#LABEL"):
+        main([f"A={four}", f"B={two_models}"])
+    assert main([f"A={four}", f"B={two_models}#GNS", "--resamples", "10"])[1]["ratio"] == pytest.approx(0.8)
+    with pytest.raises(CompareError, match="no method 'EGNN'"):
+        main([f"A={four}", f"B={two_models}#EGNN"])
+    with pytest.raises(CompareError, match="nowhere: no results.json"):
+        main([f"A={four}", f"B={tmp_path / 'nowhere'}"])
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "results.json").write_text("{")
+    with pytest.raises(CompareError, match="broken/results.json: not an evaluate.py results.json"):
+        main([f"A={four}", f"B={tmp_path / 'broken'}"])
+    with pytest.raises(CompareError, match="--reference Z"):
+        main([f"A={four}", "--reference", "Z"])
