@@ -113,7 +113,7 @@ def test_one_step_diagnostic_finds_gravity_missing_and_present():
 def write_results(folder, per_trajectory: dict[str, list[float]], dataset="data", split="test", baselines=()):
     """A results.json of evaluate.py's shape holding only what the comparison reads."""
     folder.mkdir(parents=True, exist_ok=True)
-    methods = {label: {"rollout_mse_per_trajectory": v, "rollout_mse": sum(v) / len(v)} for label, v in per_trajectory.items()}
+    methods = {label: {"rollout_mse_per_trajectory": v} for label, v in per_trajectory.items()}
     results = {"methods": {label: {"source": "baseline" if label in baselines else "model.ckpt"} for label in per_trajectory},
                "datasets": {dataset: {"split": split, "forward": {"methods": methods}}}}
     (folder / "results.json").write_text(json.dumps(results))

@@ -119,7 +119,7 @@ def compare(scores: list[Scores], reference: str, resamples: int = 10000, level:
         values = s.pooled(keys)
         row = dict(name=s.name, trajectories=len(values), mean=float(values.mean()))
         if s.name != reference:
-            rng = np.random.default_rng(seed)
+            rng = np.random.default_rng(seed)  # the same draws of trajectories for every name
             ratio, low, high = paired_ratio(values, base, resamples, level, rng)
             row.update(ratio=ratio, low=low, high=high, lower=int((values < base).sum()),
                        higher=int((values > base).sum()))
@@ -140,7 +140,7 @@ def render(rows: list[dict], reference: str, level: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m rgns.evaluation.compare", description=__doc__.split("\n\n")[0])
     parser.add_argument("entries", nargs="+", metavar="NAME=RESULTS[#LABEL][,...]")
     parser.add_argument("--reference", default=None, help="default: the first name")
     parser.add_argument("--resamples", type=int, default=10000)
