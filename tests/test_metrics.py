@@ -136,10 +136,37 @@ def test_compare_pairs_trajectories_and_pools_splits(tmp_path, capsys):
     assert (b["ratio"], b["low"], b["high"], b["lower"], b["higher"]) == (pytest.approx(2), pytest.approx(2),
                                                                             pytest.approx(2), 0, 4)
     assert c["ratio"] == pytest.approx(16.5 / 15) and c["low"] < 1 < c["high"] and (c["lower"], c["higher"]) == (2, 2)
-    assert "| B | 4 | 7500 | 2.000 | 2.000-2.000 | 0 / 4 |" in capsys.readouterr().out
+    assert "| B | 1 | 4 | 7500 |  | 2.000 | 2.000-2.000 | 0 / 4 |" in capsys.readouterr().out
     # two splits pooled per name: six trajectories, still twice on each
     (a, b) = main([f"A={test_a},{sel_a}", f"B={sel_b},{test_b}", "--reference", "B", "--resamples", "100"])
     assert a["trajectories"] == 6 and a["ratio"] == pytest.approx(0.5) and a["high"] == pytest.approx(0.5)
+
+
+def test_compare_averages_seeds_and_resamples_them(tmp_path, capsys):
+    """Seeds joined by + are averaged per trajectory, and the interval carries their spread: a
+    method whose two seeds score 2x and 4x the reference everywhere is 3x, with an interval from 2
+    to 4 (the resamples that draw one seed twice), not the single point 3."""
+    from rgns.evaluation.compare import main
+
+    reference = [1.0, 4.0, 2.0, 8.0]
+    ref = write_results(tmp_path / "ref", {"R": reference})
+    s0 = write_results(tmp_path / "s0", {"M s0": [2 * x for x in reference]})
+    s1 = write_results(tmp_path / "s1", {"M s1": [4 * x for x in reference]})
+    _, m = main([f"R={ref}", f"M={s0}+{s1}", "--resamples", "4000"])
+    assert (m["seeds"], m["trajectories"]) == (2, 4)
+    assert m["ratio"] == pytest.approx(3) and m["low"] == pytest.approx(2) and m["high"] == pytest.approx(4)
+    assert m["seed_means"] == pytest.approx([7.5, 15.0]) and m["seed_std"] == pytest.approx(7.5 / 2 ** 0.5)
+    assert (m["lower"], m["higher"]) == (0, 4)
+    assert "| M | 2 | 4 | 1.125e+04 | 5303 | 3.000 | 2.000-4.000 | 0 / 4 |" in capsys.readouterr().out
+    # pooled splits keep each seed's files together: seed 0 is 2x on both splits, seed 1 4x
+    ref_sel = write_results(tmp_path / "ref_sel", {"R": [2.0, 2.0]}, split="selection")
+    s0_sel = write_results(tmp_path / "s0_sel", {"M": [4.0, 4.0]}, split="selection")
+    s1_sel = write_results(tmp_path / "s1_sel", {"M": [8.0, 8.0]}, split="selection")
+    _, m = main([f"R={ref},{ref_sel}", f"M={s0}+{s1},{s0_sel}+{s1_sel}", "--resamples", "100"])
+    assert m["trajectories"] == 6 and m["seed_means"] == pytest.approx([38 / 6, 76 / 6]) and m["ratio"] == pytest.approx(3)
+    # a method of several seeds as the reference: the others' ratios are to its seeds' mean
+    _, r = main([f"M={s0}+{s1}", f"R={ref}", "--resamples", "100"])
+    assert r["ratio"] == pytest.approx(1 / 3) and r["low"] == pytest.approx(1 / 4) and r["high"] == pytest.approx(1 / 2)
 
 
 def test_compare_refuses_what_it_cannot_pair(tmp_path):
@@ -166,3 +193,11 @@ def test_compare_refuses_what_it_cannot_pair(tmp_path):
         main([f"A={four}", f"B={tmp_path / 'broken'}"])
     with pytest.raises(CompareError, match="--reference Z"):
         main([f"A={four}", "--reference", "Z"])
+    # seeds joined by + must hold the same trajectories; a name's splits the same number of seeds
+    with pytest.raises(CompareError, match=r"B: .*three/results.json has 3 trajectories of data \(test\), .*four/results.json 4"):
+        main([f"A={four}", f"B={four}+{three}"])
+    with pytest.raises(CompareError, match=r"valid/results.json and .*four/results.json .* do not both hold data \(test\)"):
+        main([f"A={four}", f"B={four}+{other_split}"])
+    sel = write_results(tmp_path / "sel", {"A": [1.0]}, split="selection")
+    with pytest.raises(CompareError, match="B: its splits have different numbers of seeds"):
+        main([f"A={four},{sel}", f"B={four}+{four},{sel}"])
