@@ -44,10 +44,6 @@ class Scores:
     name: str
     parts: dict[tuple[str, str], np.ndarray]  # (dataset, split) -> [seeds, trajectories]
 
-    @property
-    def seeds(self) -> int:
-        return next(iter(self.parts.values())).shape[0]
-
     def pooled(self, keys: list[tuple[str, str]]) -> np.ndarray:
         """``[seeds, trajectories]``: the splits' trajectories side by side."""
         return np.concatenate([self.parts[key] for key in keys], axis=1)
@@ -118,6 +114,14 @@ def _only_trained(file: Path, dataset: str, labels: list[str]) -> str:
     return labels[0]
 
 
+def _resample_counts(rng: np.random.Generator, n: int, resamples: int) -> np.ndarray:
+    """``[resamples, n]``: how often each of ``n`` items is drawn in each resample of ``n`` with replacement."""
+    index = rng.integers(0, n, size=(resamples, n))
+    counts = np.zeros((resamples, n))
+    np.add.at(counts, (np.arange(resamples)[:, None], index), 1.0)
+    return counts
+
+
 def paired_ratio(values: np.ndarray, reference: np.ndarray, resamples: int, level: float,
                  rng: np.random.Generator, seed_rngs: tuple[np.random.Generator, np.random.Generator] | None = None,
                  ) -> tuple[float, float, float]:
@@ -128,18 +132,11 @@ def paired_ratio(values: np.ndarray, reference: np.ndarray, resamples: int, leve
     values, reference = np.atleast_2d(values), np.atleast_2d(reference)
     ratio = float(values.mean() / reference.mean())
     trajectories = values.shape[1]
-    index = rng.integers(0, trajectories, size=(resamples, trajectories))  # [B, T]
-    counts = np.zeros((resamples, trajectories))
-    np.add.at(counts, (np.arange(resamples)[:, None], index), 1.0)
+    counts = _resample_counts(rng, trajectories, resamples)  # [B, T]
 
     def draw(matrix: np.ndarray, seed_rng: np.random.Generator | None) -> np.ndarray:  # [B]
         seeds = matrix.shape[0]
-        if seeds == 1:
-            seed_counts = np.ones((resamples, 1))
-        else:
-            picks = seed_rng.integers(0, seeds, size=(resamples, seeds))
-            seed_counts = np.zeros((resamples, seeds))
-            np.add.at(seed_counts, (np.arange(resamples)[:, None], picks), 1.0)
+        seed_counts = np.ones((resamples, 1)) if seeds == 1 else _resample_counts(seed_rng, seeds, resamples)
         return np.einsum("bs,st,bt->b", seed_counts, matrix, counts) / (seeds * trajectories)
 
     if seed_rngs is None and max(values.shape[0], reference.shape[0]) > 1:
