@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import rgns.data.generate as generate
+import rgns.data.subset as subset
 from rgns.data.contract import KINEMATIC, SPLITS, WATER, DatasetError, open_split, read_metadata, validate_dataset
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.data.stats import compute_statistics
@@ -183,3 +184,40 @@ def test_split_sizes_are_settable_and_a_larger_split_extends_a_smaller_one(water
     with pytest.raises(ValueError, match="unknown split"):
         generate_dataset(tiny_scene(), tmp_path / "bad", splits={"validation": 2}, **TINY)
     assert not (tmp_path / "bad").exists()
+
+
+def test_subset_keeps_the_chosen_trajectories_and_recomputes_what_depends_on_them(waterdrop, tmp_path):
+    target = subset.main([str(waterdrop), str(tmp_path / "second"), "--split", "train", "--trajectories", "1"])
+    metadata = validate_dataset(target)
+    source = read_metadata(waterdrop)
+    with open_split(waterdrop, "train") as full, open_split(target, "train") as part:
+        assert len(part) == 1 and (part[0].position == full[1].position).all()
+        assert {k: metadata[k] for k in ("vel_std", "acc_std")} != {k: source[k] for k in ("vel_std", "acc_std")}
+        assert {k: metadata[k] for k in ("vel_mean", "vel_std", "acc_mean", "acc_std")} == compute_statistics(part)
+        others = [t for name in ("valid", "test") for t in open_split(waterdrop, name)]
+        assert metadata["num_particles_max"] == max(t.position.shape[1] for t in [part[0], *others])
+    for name in ("valid.h5", "test.h5"):  # the other splits as they are
+        assert (target / name).read_bytes() == (waterdrop / name).read_bytes()
+    assert metadata["subset"] == {"source": str(waterdrop), "split": "train", "trajectories": [1]}
+    assert metadata["generator"]["draws"] == {"train": [1]}
+    # a subset of the subset records the first draw numbers
+    again = subset.make_subset(target, tmp_path / "again", "train", [0])
+    assert read_metadata(again)["generator"]["draws"] == {"train": [1]}
+
+
+def test_subset_refuses_bad_choices_and_never_touches_an_existing_folder(waterdrop, tmp_path):
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    (existing / "keep.txt").write_text("mine")
+    with pytest.raises(DatasetError, match="existing: already exists"):
+        subset.make_subset(waterdrop, existing, "train", "0")
+    assert [p.name for p in existing.iterdir()] == ["keep.txt"]
+    for text, match in [("0:3", r"'0:3' is neither .* STOP <= 2"), ("0,0", r"trajectories \[0\] more than once"),
+                        ("x", "'x' is neither"), ("1:1", "'1:1' is neither"), ("-1", "'-1' is neither")]:
+        with pytest.raises(ValueError, match=match):
+            subset.make_subset(waterdrop, tmp_path / "new", "train", text)
+    with pytest.raises(ValueError, match="unknown split 'tests'"):
+        subset.make_subset(waterdrop, tmp_path / "new", "tests", "0")
+    with pytest.raises(DatasetError, match=r"test.h5: has 1 trajectories; no trajectory \[1\]"):
+        subset.make_subset(waterdrop, tmp_path / "new", "test", [1])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["existing"]  # nothing half written left behind

@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 import rgns.evaluation.run as run_module
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.generate import generate_dataset, scene_config
+from rgns.data.subset import make_subset
 from rgns.evaluation.baselines import Ballistic
 from rgns.evaluation.methods import Method
 from rgns.evaluation.references import SolverReferences, grid_substeps, metres
@@ -169,6 +170,22 @@ def test_datasets_without_a_rebuildable_generator_get_no_solver_and_say_why(gene
     metadata = copy.deepcopy(load(generated).metadata)
     metadata["generator"]["seed"] += 1  # other initial states than the stored ones
     references, note = SolverReferences()(Dataset("changed", "", metadata, converted.trajectories, start=HISTORY))
+    assert references == [] and "is not the stored one" in note
+
+
+def test_a_subset_of_a_split_reruns_from_its_own_initial_states(generated, tmp_path):
+    # trajectory 1 alone, renumbered 0: the solver must redraw draw 1, which the subset records
+    subset = make_subset(generated, tmp_path / "second", "test", "1")
+    dataset = load(subset)
+    (exact,), note = SolverReferences(resolutions=[1.0], floor_perturbation=None)(dataset)
+    assert note is None
+    position = dataset.trajectories[0][0]
+    assert (position == load(generated).trajectories[1][0]).all()
+    torch.testing.assert_close(exact.trajectory(dataset, 0, len(position)), position, atol=0, rtol=0)
+    # without the record the redraw is trajectory 0's, and the reference says so instead of comparing
+    metadata = copy.deepcopy(dataset.metadata)
+    del metadata["generator"]["draws"]
+    references, note = SolverReferences()(Dataset("renumbered", "", metadata, dataset.trajectories, start=HISTORY))
     assert references == [] and "is not the stored one" in note
 
 

@@ -4,7 +4,8 @@ states, as yardsticks for the forward rollouts.
 A generated dataset records how it was made (``metadata["generator"]``: the scene config
 ``params`` with its ``solver``, the ``seed``; see :mod:`rgns.data.generate`): trajectory ``i`` of
 split ``s`` drew its initial state from ``numpy.random.default_rng([seed, s, i])`` through the
-scene's ``sample``. So the scene can be rebuilt, the initial state of each test trajectory drawn
+scene's ``sample`` (a subset of a split, :mod:`rgns.data.subset`, records each stored trajectory's
+``i`` in ``generator.draws``). So the scene can be rebuilt, the initial state of each test trajectory drawn
 again (checked against the stored frame 0), and the solver run again:
 
 - at coarser resolutions (``resolutions``: fractions of the stored ``n_grid``, e.g. 0.5 and 0.75
@@ -184,8 +185,9 @@ class SolverReferences:
             solver = dict(params["solver"])
             solver_class = get_class(solver["_target_"])
             scene = instantiate(params)
+            draws = (generator.get("draws") or {}).get(dataset.split) or range(len(dataset.trajectories))
             initial_states = [scene.sample(np.random.default_rng([int(generator["seed"]), SPLITS.index(dataset.split), i]))
-                              for i in range(len(dataset.trajectories))]
+                              for i in list(draws)[:len(dataset.trajectories)]]
         except Exception as error:  # noqa: BLE001 - any failure to rebuild is reported, not raised
             return [], (f"No solver references: the generator's scene cannot be rebuilt "
                         f"({type(error).__name__}: {error}).")
