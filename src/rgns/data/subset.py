@@ -30,7 +30,8 @@ import tempfile
 from pathlib import Path
 from typing import Sequence
 
-from rgns.data.contract import SPLITS, DatasetError, Split, dataset_folder, read_metadata, write_metadata, write_split
+from rgns.data.contract import (SPLITS, DatasetError, Split, dataset_folder, read_metadata, split_path, write_metadata,
+                                write_split)
 from rgns.data.stats import compute_statistics, dataset_regime
 
 
@@ -67,7 +68,7 @@ def make_subset(source: str | os.PathLike, target: str | os.PathLike, split: str
     if target.exists():
         raise DatasetError(f"{target}: already exists; choose another folder or delete it")
     metadata = read_metadata(source)
-    with Split(source / f"{split}.h5", dim=metadata["dim"]) as data:
+    with Split(split_path(source, split), dim=metadata["dim"]) as data:
         if isinstance(trajectories, str):
             trajectories = parse_trajectories(trajectories, len(data))
         trajectories = [int(i) for i in trajectories]
@@ -82,7 +83,7 @@ def make_subset(source: str | os.PathLike, target: str | os.PathLike, split: str
             write_split(staging / f"{split}.h5", (data[i] for i in trajectories))
             for other in SPLITS:
                 if other != split:
-                    shutil.copyfile(source / f"{other}.h5", staging / f"{other}.h5")
+                    shutil.copyfile(split_path(source, other), staging / f"{other}.h5")
             write_metadata(staging, _subset_metadata(metadata, source, staging, split, trajectories))
             os.rename(staging, target)  # fails, keeping the staged folder out of the way, if target appeared meanwhile
         finally:
