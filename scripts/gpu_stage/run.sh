@@ -19,7 +19,7 @@ if [ "$ACC" = gpu ] && [ "${BENCH_S:-0}" -gt 0 ]; then
 fi
 wait $UNP; echo "unpack rc=$? t=$(el)"; cat $OUT/unpack.log
 mkdir -p outputs/gpu
-R="experiment=main model=rgns model.memory_saving=false model.couplings=pairwise model.latent=64 model.galilean=true init_from=pretrained/waterdrop40_main_64/rgns.ckpt"
+R="experiment=main model=rgns model.memory_saving=false model.couplings=pairwise model.latent=128 model.galilean=true init_from=pretrained/waterdrop40_main_64/rgns.ckpt"
 G="experiment=main model=gns model.layers=4 model.decoder=pairwise model.latent=64 model.galilean=true init_from=pretrained/waterdrop40_main_64/gns.ckpt"
 S="recipe=unroll module.optimizer.lr=5e-5 module.scheduler.eta_min=2.5e-6 module.unroll.steps=[0] module.unroll.lengths=[6] data.horizon=6 trainer.max_steps=5000 data.root=datasets/gpu128 density_weight=10 trainer.val_check_interval=500 module.val_trajectories=8 trainer.enable_progress_bar=false +callbacks.checkpoint.save_top_k=-1 trainer.accelerator=$ACC trainer.log_every_n_steps=100"
 P80="+module.pushforward={steps:[-1,-1,-1,-1],unrolls:[0,20,40,80],probs:[2,1,1,1]} data.lead=80"
