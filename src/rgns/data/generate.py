@@ -30,7 +30,7 @@ What it guarantees:
   holding split files without a ``metadata.json`` or plan of this generation, or an unreadable
   ``metadata.json``, is never mixed with: generation stops with an error naming it;
 - ``metadata.json`` carries DeepMind's keys (statistics from the train split) plus
-  ``num_particles_max``, ``gravity``, ``regime`` (:func:`rgns.data.stats.dataset_regime` of the
+  ``num_particles_max``, ``gravity``, ``regime`` (:func:`rgns.data.stats.regime_summary` of the
   train split: mean neighbours over each trajectory, kinetic energy left at the end) and
   ``generator`` = {scene, params, seed, version, ...}.
 """
@@ -48,7 +48,7 @@ import numpy as np
 
 from rgns import config_dir as package_config_dir
 from rgns.data.contract import SPLITS, DatasetError, Split, atomic_path, write_metadata, write_split
-from rgns.data.stats import compute_statistics, dataset_regime
+from rgns.data.stats import compute_statistics, regime_summary
 
 GENERATOR_VERSION = 1  # bump when the same config and seed would give other data
 
@@ -212,8 +212,7 @@ def generate_dataset(scene: str | Mapping, out_dir: str | Path, num_trajectories
             num_particles_max = max([num_particles_max] + [shape[1] for shape in data.shapes])
     with Split(out_dir / "train.h5") as train:
         statistics = compute_statistics(train)
-        regime = dataset_regime(train, float(cfg["connectivity_radius"]))
-    regime.pop("trajectories")  # the summary: `python -m rgns.data.stats DIR` prints it per trajectory
+        regime = regime_summary(train, float(cfg["connectivity_radius"]))
     metadata = {
         "bounds": cfg["bounds"],
         "sequence_length": num_frames - 1,

@@ -104,6 +104,14 @@ def dataset_regime(trajectories: Iterable[Trajectory | tuple], radius: float, po
     }
 
 
+def regime_summary(trajectories: Iterable[Trajectory | tuple], radius: float, points: int = 10) -> dict:
+    """:func:`dataset_regime`'s summary figures without the per-trajectory rows: what a dataset's
+    ``metadata.json`` records as ``regime`` (``python -m rgns.data.stats DIR`` prints the rows)."""
+    summary = dataset_regime(trajectories, radius, points)
+    summary.pop("trajectories")
+    return summary
+
+
 def main(argv=None) -> dict:
     """``python -m rgns.data.stats DATASET_DIR [--split train] [--points 10]``: print the regime."""
     import argparse

@@ -32,7 +32,7 @@ from typing import Sequence
 
 from rgns.data.contract import (SPLITS, DatasetError, Split, dataset_folder, read_metadata, split_path, write_metadata,
                                 write_split)
-from rgns.data.stats import compute_statistics, dataset_regime
+from rgns.data.stats import compute_statistics, regime_summary
 
 
 def parse_trajectories(text: str, count: int) -> list[int]:
@@ -102,14 +102,11 @@ def _subset_metadata(metadata: dict, source: Path, staging: Path, split: str, tr
     for name in SPLITS:
         with Split(staging / f"{name}.h5", dim=metadata["dim"]) as data:
             shapes += data.shapes
+            if name == split == "train":  # what depends on the training trajectories
+                metadata.update(compute_statistics(data))
+                if "regime" in metadata:
+                    metadata["regime"] = regime_summary(data, float(metadata["default_connectivity_radius"]))
     metadata["num_particles_max"] = max(shape[1] for shape in shapes)
-    if split == "train":
-        with Split(staging / "train.h5", dim=metadata["dim"]) as train:
-            metadata.update(compute_statistics(train))
-            if "regime" in metadata:
-                regime = dataset_regime(train, float(metadata["default_connectivity_radius"]))
-                regime.pop("trajectories")
-                metadata["regime"] = regime
     return metadata
 
 
