@@ -77,6 +77,9 @@ def make_subset(source: str | os.PathLike, target: str | os.PathLike, split: str
         out_of_range = [i for i in trajectories if not 0 <= i < len(data)]
         if out_of_range:
             raise DatasetError(f"{source / f'{split}.h5'}: has {len(data)} trajectories; no trajectory {out_of_range}")
+        repeated = sorted({i for i in trajectories if trajectories.count(i) > 1})
+        if repeated:
+            raise ValueError(f"trajectories: {repeated} chosen more than once (a subset holds each trajectory once)")
         target.parent.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
         try:
