@@ -472,6 +472,39 @@ def test_rest_diagnostic_runs_on_a_checkpoint(trained, tmp_path):
         rest([str(checkpoint), "--steps", "0"])
 
 
+def test_where_finds_the_step_and_the_particles_that_make_the_error():
+    from rgns.evaluation.where import error_steps
+
+    truth = torch.zeros(10, 5, 2)
+    truth[:, :, 0] = torch.arange(5.0)  # particle j sits at x = j
+    predicted = truth.clone()
+    predicted[6:, 3, 1] -= 0.5  # particle 3 too low from step 7 on
+    particle_type = torch.tensor([5, 5, 5, 5, 3])  # the last one kinematic
+    predicted[:, 4, 1] += 9.0  # a kinematic particle's error is never among the worst
+    result = error_steps(predicted, truth, particle_type, every=3, worst=1)
+    assert [row["step"] for row in result["rows"]] == [3, 6, 9, 10]  # the last step always
+    assert result["rollout_mse"] == pytest.approx(float((predicted - truth).pow(2).mean()))
+    first, _, third, last = result["rows"]
+    assert first["mse"] == pytest.approx(81 / 10) and third["mse"] == pytest.approx((81 + 0.25) / 10)
+    assert third["truth"] == [3.0, 0.0] and third["predicted"] == [3.0, -0.5]
+    assert first["share"] == pytest.approx(3 * 8.1 / (10 * 8.1 + 4 * 0.025)) and last["share"] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="every=0"):
+        error_steps(predicted, truth, particle_type, every=0, worst=1)
+
+
+def test_where_diagnostic_runs_on_a_checkpoint(trained, tmp_path, capsys):
+    from rgns.evaluation.where import main as where
+
+    checkpoint = next((trained / "sweep").glob("*/checkpoints/last.ckpt"))
+    result = where([str(checkpoint), "--steps", "6", "--every", "4", "--worst", "3", "--trajectories", "2",
+                    "--only", "1", "--json", str(tmp_path / "where.json")])
+    assert list(result["trajectories"]) == [1] and [r["step"] for r in result["trajectories"][1]["rows"]] == [4, 6]
+    assert json.loads((tmp_path / "where.json").read_text())["trajectories"]["1"]["rows"][-1]["share"] == pytest.approx(1.0)
+    assert "trajectory 1 (" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        where([str(checkpoint), "--trajectories", "2", "--only", "2"])
+
+
 def test_walls_diagnostic_runs_on_a_checkpoint(trained, tmp_path):
     from rgns.evaluation.walls import main as walls
 
