@@ -211,6 +211,42 @@ def test_one_step_unroll_with_clean_input_is_the_position_error(tiny_dataset):
     torch.testing.assert_close(terms["forward_mse"].detach(), torch.stack(errors).mean(), rtol=1e-4, atol=0)
 
 
+@pytest.mark.parametrize("target", ["velocity", "acceleration"])
+def test_multistep_target_asks_the_reached_state_for_the_true_velocity_or_acceleration(tiny_dataset, target):
+    """multistep_target: from the state the model reached (not the true one), the second unrolled
+    step is asked for the true next velocity, or the true acceleration at that frame, instead of
+    the true next position; the first step starts from the clean truth, so all three agree on it."""
+    module = module_with(unroll={"steps": [0], "lengths": [2]})
+    module.hparams.noise_std, module.hparams.multistep_target = 0.0, target
+    batch = windows_batch(tiny_dataset, lead=0, horizon=2)
+    terms = module._losses(batch)
+    k, frames, scale = 5, batch.frames, module.model.acc_std_noisy
+    moving = batch.particle_type == WATER
+    state = State(frames[:, k], (frames[:, 1 : k + 1] - frames[:, :k]), batch.particle_type, batch.batch)
+    errors, drifted = [], []
+    with torch.no_grad():
+        for j in range(2):
+            velocity = state.velocity_history[:, -1]
+            state = module.model.step(state, kinematic_position=frames[:, k + j + 1])
+            predicted = state.velocity_history[:, -1]
+            true_velocity = frames[:, k + j + 1] - frames[:, k + j]
+            if target == "velocity":
+                error = predicted - true_velocity
+            else:
+                error = (predicted - velocity) - (true_velocity - (frames[:, k + j] - frames[:, k + j - 1]))
+            errors.append(((error / scale)[moving] ** 2).mean())
+            drifted.append(((state.position - frames[:, k + j + 1]) / scale)[moving].pow(2).mean())
+    torch.testing.assert_close(terms["forward_mse"].detach(), torch.stack(errors).mean(), rtol=1e-4, atol=0)
+    # the second step's state has drifted, so the position error there differs from these targets
+    assert not torch.allclose(torch.stack(errors), torch.stack(drifted), rtol=1e-3)
+    torch.testing.assert_close(errors[0], drifted[0], rtol=1e-4, atol=0)
+
+
+def test_multistep_target_refuses_an_unknown_name():
+    with pytest.raises(ValueError, match="multistep_target must be one of"):
+        SimulatorModule(MODEL, make_metadata(), LOSS, OPTIMIZER, multistep_target="positions")
+
+
 @pytest.mark.parametrize("scale", [0.0, 1.0])
 def test_unrolled_loss_starts_from_positions_with_the_position_noise_asked_for(tiny_dataset, scale):
     """position_noise scales the start frame's share of the random-walk noise in the multi-step

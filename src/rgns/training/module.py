@@ -23,6 +23,9 @@ from rgns.training.rollouts import forward_rollout, inverse_then_forward
 matplotlib.use("Agg")
 
 
+MULTISTEP_TARGETS = ("position", "velocity", "acceleration")
+
+
 class SimulatorModule(L.LightningModule):
     """Trains any rgns simulator (GNS, R-GNS, R-GNS†, Sep-GNS).
 
@@ -57,6 +60,13 @@ class SimulatorModule(L.LightningModule):
             the multi-step path: an unrolled length above 1 or a pushforward draw above 0).
         wall_gradient: ``"stop"`` or ``"through"``: how the gradients of those losses cross the
             model's hard walls (:attr:`~rgns.models.base.Simulator.wall_gradient`).
+        multistep_target: what each step with gradients of the pushforward and unrolled losses
+            is asked for, from the state the model reached: ``"position"`` the true next
+            position (the error of the predicted position, so a drifted state is asked to
+            undo all its drift in one step); ``"velocity"`` the true next velocity (the drift
+            of the velocity is undone, the position's is not, as GNS's noise correction does);
+            ``"acceleration"`` the true trajectory's own acceleration at that frame, whatever
+            the state (as LagrangeBench's pushforward does). All in acceleration-std units.
         compile: run the model's network functions through ``torch.compile(dynamic=True)`` in
             training steps (:meth:`~rgns.models.base.Simulator.compile_network`); validation and
             a simulator loaded from the checkpoint run eager.
@@ -83,6 +93,7 @@ class SimulatorModule(L.LightningModule):
         noise_low: float = 1.0,
         density_weight: float = 0.0,
         wall_gradient: str = "stop",
+        multistep_target: str = "position",
         compile: bool = False,
     ):
         super().__init__()
@@ -101,6 +112,8 @@ class SimulatorModule(L.LightningModule):
         if wall_gradient not in ("stop", "through"):
             raise ValueError(f"wall_gradient must be 'stop' or 'through', got {wall_gradient!r}")
         self.model.wall_gradient = wall_gradient
+        if multistep_target not in MULTISTEP_TARGETS:
+            raise ValueError(f"multistep_target must be one of {MULTISTEP_TARGETS}, got {multistep_target!r}")
         self.loss = instantiate(loss)
         self.pushforward = Pushforward(**pushforward) if pushforward else None
         self._pushed = 0  # the latest training batch's pushed steps, logged as train/pushed
@@ -179,12 +192,17 @@ class SimulatorModule(L.LightningModule):
         totals: dict[str, torch.Tensor] = {}
         for j in range(length):
             previous, reference = state.position, state.velocity_history[:, -1]  # p^{t+j}, v^{t+j} (predicted)
-            target = frames[:, lead + k + j + 1] + offset  # the true p^{t+j+1}, noise-shifted
+            truth = frames[:, lead + k + j - 1 : lead + k + j + 2]  # the true p^{t+j-1}, p^{t+j}, p^{t+j+1}
             state = self.model.step(state, kinematic_position=frames[:, lead + k + j + 1])
+            # the predicted acceleration; gradients reach every step through the positions and
+            # histories of the earlier ones
             change = (state.velocity_history[:, -1] - reference) / scale
-            # change - target_change is the error of the predicted position, in acceleration units;
-            # gradients reach every step through the positions and histories of the earlier ones
-            target_change = (target - previous - reference) / scale
+            if self.hparams.multistep_target == "position":  # change - target_change: the position's error
+                target_change = (truth[:, 2] + offset - previous - reference) / scale  # noise-shifted p^{t+j+1}
+            elif self.hparams.multistep_target == "velocity":  # ... the next velocity's error
+                target_change = (truth[:, 2] - truth[:, 1] - reference) / scale
+            else:  # the true acceleration
+                target_change = (truth[:, 2] - 2 * truth[:, 1] + truth[:, 0]) / scale
             terms = self.loss(change[moving], target_change[moving], batch.batch[moving])
             if self.hparams.density_weight:
                 clean = frames[:, lead + k + j + 1]  # the true p^{t+j+1}, without the start frame's noise
