@@ -5,7 +5,8 @@ import pytest
 import torch
 from conftest import make_metadata
 
-from rgns.evaluation.metrics import chamfer, divergence_step, mmd, mse_per_step, optimal_transport, rollout_mse
+from rgns.evaluation.metrics import (chamfer, divergence_step, mmd, mse_per_step, optimal_transport, rollout_mse,
+                                    with_last)
 from rgns.training.losses import LossDesign
 
 
@@ -48,6 +49,12 @@ def test_mse_per_step_shape_and_values():
     truth = torch.zeros(4, 10, 3)
     predicted = truth + torch.arange(4.0)[:, None, None]
     assert mse_per_step(predicted, truth).tolist() == [0.0, 1.0, 4.0, 9.0]
+
+
+def test_with_last_appends_the_last_step_once():
+    assert with_last([25, 50], 60) == [25, 50, 60]
+    assert with_last([25, 50], 50) == [25, 50]
+    assert with_last([], 7) == [7]
 
 
 def test_divergence_step_finds_each_failure():

@@ -25,6 +25,12 @@ def mse_per_step(predicted: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return (predicted - truth).pow(2).flatten(1).mean(1)
 
 
+def with_last(steps: list[int], last: int) -> list[int]:
+    """``steps`` (ascending, each at most ``last``) with ``last`` appended unless it ends them:
+    the steps a per-step report covers, the rollout's last always among them."""
+    return steps if steps and steps[-1] == last else steps + [last]
+
+
 def rms_norm(vectors: torch.Tensor) -> float:
     """Root-mean-square length of vectors ``[..., D]``: per-frame velocities give the rms speed,
     accelerations less their mean the rms internal acceleration."""

@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from rgns.data.contract import KINEMATIC, DatasetError, check_dataset, open_split
 from rgns.evaluation.metrics import (density_ratio, divergence_step, mmd, mse_per_step, optimal_transport,
-                                    reference_speed)
+                                    reference_speed, with_last)
 from rgns.models import State
 from rgns.training.rollouts import inverse_then_forward
 
@@ -286,8 +286,7 @@ class ForwardRollout:
         generator = torch.Generator().manual_seed(self.seed)
         if len(moving) > self.distribution_particles:
             moving = moving[torch.randperm(len(moving), generator=generator)[: self.distribution_particles].to(moving.device)]
-        steps = [s for s in self.distribution_steps if s <= len(predicted)]
-        steps = steps if steps and steps[-1] == len(predicted) else steps + [len(predicted)]
+        steps = with_last([s for s in self.distribution_steps if s <= len(predicted)], len(predicted))
         ot_values, mmd_values = {}, {}
         for s in steps:
             x, y = predicted[s - 1, moving], truth[s - 1, moving]

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from rgns.data.contract import KINEMATIC
-from rgns.evaluation.metrics import mse_per_step
+from rgns.evaluation.metrics import mse_per_step, with_last
 from rgns.training.rollouts import forward_rollout
 
 
@@ -41,8 +41,7 @@ def error_steps(predicted: Tensor, truth: Tensor, particle_type: Tensor, every: 
     cumulative = per_step.cumsum(0)
     total = float(cumulative[-1])
     moving = (particle_type != KINEMATIC).nonzero().squeeze(1)
-    steps = list(range(every, len(per_step) + 1, every))
-    steps = steps if steps and steps[-1] == len(per_step) else steps + [len(per_step)]
+    steps = with_last(list(range(every, len(per_step) + 1, every)), len(per_step))
     rows = []
     for step in steps:
         error = (predicted[step - 1, moving] - truth[step - 1, moving]).pow(2).sum(-1)  # [M]
