@@ -220,6 +220,6 @@ def test_subset_refuses_bad_choices_and_never_touches_an_existing_folder(waterdr
         subset.make_subset(waterdrop, tmp_path / "new", "tests", "0")
     with pytest.raises(DatasetError, match=r"test.h5: has 1 trajectories; no trajectory \[1\]"):
         subset.make_subset(waterdrop, tmp_path / "new", "test", [1])
-    with pytest.raises(ValueError, match=r"\[0\] chosen more than once"):
+    with pytest.raises(ValueError, match=r"trajectories \[0, 1, 0\]: index \[0\] more than once"):
         subset.make_subset(waterdrop, tmp_path / "new", "train", [0, 1, 0])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["existing"]  # nothing half written left behind

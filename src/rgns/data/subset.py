@@ -52,10 +52,16 @@ def parse_trajectories(text: str, count: int) -> list[int]:
         else:
             raise ValueError(f"--trajectories: {part.strip()!r} is neither a trajectory number nor a range START:STOP "
                              f"with 0 <= START < STOP <= {count} (the split has {count} trajectories)")
+    _refuse_repeats(indices, f"--trajectories: {text!r} names trajectories")
+    return indices
+
+
+def _refuse_repeats(indices: list[int], what: str) -> None:
+    """A ``ValueError`` that starts with ``what`` when an index comes more than once (a subset holds
+    each trajectory once)."""
     repeated = sorted({i for i in indices if indices.count(i) > 1})
     if repeated:
-        raise ValueError(f"--trajectories: {text!r} names trajectories {repeated} more than once")
-    return indices
+        raise ValueError(f"{what} {repeated} more than once (a subset holds each trajectory once)")
 
 
 def make_subset(source: str | os.PathLike, target: str | os.PathLike, split: str,
@@ -77,9 +83,7 @@ def make_subset(source: str | os.PathLike, target: str | os.PathLike, split: str
         out_of_range = [i for i in trajectories if not 0 <= i < len(data)]
         if out_of_range:
             raise DatasetError(f"{source / f'{split}.h5'}: has {len(data)} trajectories; no trajectory {out_of_range}")
-        repeated = sorted({i for i in trajectories if trajectories.count(i) > 1})
-        if repeated:
-            raise ValueError(f"trajectories: {repeated} chosen more than once (a subset holds each trajectory once)")
+        _refuse_repeats(trajectories, f"trajectories {trajectories}: index")
         target.parent.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
         try:
