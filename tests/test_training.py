@@ -153,6 +153,11 @@ def test_resume_after_kill_continues_from_last_checkpoint(dataset, tmp_path):
     assert resumed["global_step"] == step + 5  # continued, did not start over
     # Adam's own step count continued too: its state came back with the weights
     assert float(next(iter(resumed["optimizer_states"][0]["state"].values()))["step"]) == step + 5
+    # and the training windows went on in the killed run's order from where it was, not from its epoch's start
+    (order,) = killed["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+    assert order["position"] == 2 * killed["loops"]["fit_loop"]["epoch_loop.batch_progress"]["current"]["completed"]
+    (order_after,) = resumed["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+    assert order_after == {"seed": order["seed"], "position": order["position"] + 2 * 5}
 
 
 def test_init_from_starts_a_new_run_from_a_checkpoints_weights(dataset, tmp_path):

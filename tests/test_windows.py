@@ -2,9 +2,11 @@ import shutil
 
 import pytest
 import torch
+from torch_geometric.data import Data
+from torch_geometric.loader import DataLoader
 
 from rgns.data.contract import KINEMATIC, open_split
-from rgns.data.datamodule import ParticleDataModule
+from rgns.data.datamodule import ParticleDataModule, ResumableLoader
 from rgns.data.graph import radius_graph
 from rgns.data.windows import WindowDataset, noise_level, random_walk_noise
 
@@ -166,6 +168,39 @@ def test_datamodule_batches_two_graphs(tiny_dataset):
     assert int(batch.edge_index.max()) < 120
     # edges never join the two graphs
     assert (batch.batch[batch.edge_index[0]] == batch.batch[batch.edge_index[1]]).all()
+
+
+def numbered(n: int) -> list[Data]:
+    return [Data(number=torch.tensor([i])) for i in range(n)]
+
+
+def order_of(batches) -> list[int]:
+    return [int(i) for batch in batches for i in batch.number]
+
+
+def test_training_order_is_the_shuffled_one_and_resumes_within_its_epoch():
+    windows = numbered(23)
+    torch.manual_seed(3)
+    shuffled = order_of(DataLoader(windows, batch_size=2, shuffle=True))
+    torch.manual_seed(3)
+    loader = ResumableLoader(windows, batch_size=2)
+    assert order_of(loader) == shuffled  # a run that is not resumed trains on the same windows as before
+    assert sorted(shuffled) == list(range(23)) and shuffled != sorted(shuffled)
+
+    torch.manual_seed(3)
+    first = ResumableLoader(windows, batch_size=2)
+    batches = iter(first)
+    before = order_of(next(batches) for _ in range(4))
+    state = first.state_dict()
+    assert state["position"] == 8
+    torch.manual_seed(99)  # the resumed process's own generator
+    resumed = ResumableLoader(windows, batch_size=2)
+    resumed.load_state_dict(state)
+    assert before + order_of(resumed) == shuffled  # the rest of the epoch, no window twice
+    assert resumed.state_dict() == {"seed": state["seed"], "position": 23 - 23 % 2 + 2}
+    assert sorted(order_of(resumed)) == list(range(23))  # then whole new epochs
+    resumed.load_state_dict(resumed.state_dict())  # saved at an epoch's end: the next starts whole
+    assert sorted(order_of(resumed)) == list(range(23))
 
 
 def test_validation_windows_come_in_a_fixed_order_spread_over_the_split(tiny_dataset):

@@ -7,13 +7,70 @@ from typing import Callable
 
 import lightning as L
 import torch
-from torch.utils.data import Subset
+from torch.utils.data import Sampler, Subset
 from torch_geometric.loader import DataLoader
 
 from rgns.data.contract import Contents, DatasetError, check_dataset, open_split
 from rgns.data.windows import TrajectoryDataset, WindowDataset
 
 log = logging.getLogger(__name__)
+
+
+class ResumableOrder(Sampler[int]):
+    """``RandomSampler``'s order of the training windows, resumable within an epoch.
+
+    Each epoch draws its seed from torch's global generator when iterated, as ``RandomSampler``
+    does, so a run that is not resumed sees exactly the windows ``shuffle=True`` gives.
+    :meth:`resume_at` makes the next epoch that seed's order from a position on: the rest of the
+    epoch a checkpoint was saved in, instead of a new epoch's first windows again.
+    """
+
+    def __init__(self, size: int):
+        self.size = size
+        self.seed: int | None = None  # the epoch's, and where in its order it started, once iterated
+        self.start = 0
+        self._resume: tuple[int, int] | None = None
+
+    def resume_at(self, seed: int, position: int) -> None:
+        self._resume = (seed, position)
+
+    def __iter__(self):
+        seed, start = self._resume if self._resume is not None else (None, 0)
+        self._resume = None
+        if seed is None or start >= self.size:  # nothing to resume, or the epoch was done: a new one
+            seed, start = int(torch.empty((), dtype=torch.int64).random_().item()), 0
+        self.seed, self.start = seed, start
+        order = torch.randperm(self.size, generator=torch.Generator().manual_seed(seed))
+        yield from order[start:].tolist()
+
+    def __len__(self) -> int:
+        return self.size
+
+
+class ResumableLoader(DataLoader):
+    """The training loader, with the ``state_dict`` / ``load_state_dict`` Lightning saves in a
+    checkpoint's loop state and restores on ``resume=``: where in its epoch's order the loader was
+    (:class:`ResumableOrder`). The position counts the windows of the batches the loader handed
+    out in the epoch; Lightning fetches none ahead from a loader of known length, so at a
+    checkpoint they are the windows trained on.
+    """
+
+    def __init__(self, dataset, batch_size: int, **kwargs):
+        self.order = ResumableOrder(len(dataset))
+        super().__init__(dataset, batch_size=batch_size, sampler=self.order, **kwargs)
+        self._handed_out = 0
+
+    def __iter__(self):
+        self._handed_out = 0
+        for batch in super().__iter__():
+            self._handed_out += 1
+            yield batch
+
+    def state_dict(self) -> dict:
+        return {"seed": self.order.seed, "position": self.order.start + self._handed_out * self.batch_size}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.order.resume_at(state["seed"], state["position"])
 
 
 class ParticleDataModule(L.LightningDataModule):
@@ -148,7 +205,11 @@ class ParticleDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_set, shuffle=True)
+        if self.trainer is not None and self.trainer.world_size > 1:
+            # Lightning gives each rank its DistributedSampler share (resumed runs start the epoch's order again)
+            return self._loader(self.train_set, shuffle=True)
+        return ResumableLoader(self.train_set, batch_size=self.batch_size, num_workers=self.num_workers,
+                               persistent_workers=self.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader:
         # the windows in one fixed shuffled order: validation on the first batches only
