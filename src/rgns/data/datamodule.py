@@ -195,21 +195,15 @@ class ParticleDataModule(L.LightningDataModule):
             self.valid_set = WindowDataset(self.split("valid"), self.radius, self.history, 0.0)
             self.valid_trajectories = TrajectoryDataset(self.split("valid"))
 
-    def _loader(self, dataset, shuffle: bool) -> DataLoader:
-        return DataLoader(
-            dataset,
-            batch_size=self.batch_size,
-            shuffle=shuffle,
-            num_workers=self.num_workers,
-            persistent_workers=self.num_workers > 0,
-        )
+    def _loader(self, dataset, make: type[DataLoader] = DataLoader, **options) -> DataLoader:
+        return make(dataset, batch_size=self.batch_size, num_workers=self.num_workers,
+                    persistent_workers=self.num_workers > 0, **options)
 
     def train_dataloader(self) -> DataLoader:
         if self.trainer is not None and self.trainer.world_size > 1:
             # Lightning gives each rank its DistributedSampler share (resumed runs start the epoch's order again)
             return self._loader(self.train_set, shuffle=True)
-        return ResumableLoader(self.train_set, batch_size=self.batch_size, num_workers=self.num_workers,
-                               persistent_workers=self.num_workers > 0)
+        return self._loader(self.train_set, ResumableLoader)
 
     def val_dataloader(self) -> DataLoader:
         # the windows in one fixed shuffled order: validation on the first batches only
