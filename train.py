@@ -30,12 +30,14 @@ def main(cfg: DictConfig) -> float | None:
     datamodule = instantiate(cfg.data)
     datamodule.prepare_data()
     module = instantiate(cfg.module, model=cfg.model, loss=cfg.loss, metadata=datamodule.metadata, _recursive_=False)
-    if cfg.init_from:
-        if cfg.resume:
+    # read with .get: `~init_from` (or `~resume`, `~init_grow`) removes the key, which means "not set"
+    init_from, resume, init_grow = cfg.get("init_from"), cfg.get("resume"), cfg.get("init_grow", False)
+    if init_from:
+        if resume:
             raise ValueError("init_from and resume both set: resume= continues a run (its optimiser, schedule and "
                              "step), init_from= starts a new one from a checkpoint's weights; give one")
-        warm_start(module, cfg.init_from, grow=cfg.init_grow)
-    elif cfg.init_grow:
+        warm_start(module, init_from, grow=init_grow)
+    elif init_grow:
         raise ValueError("init_grow=true grows the model of init_from=<checkpoint>: set init_from")
     trainer = instantiate(
         cfg.trainer,
@@ -43,7 +45,7 @@ def main(cfg: DictConfig) -> float | None:
         callbacks=[instantiate(c) for c in cfg.callbacks.values() if c is not None],  # `callbacks.X=null` drops one
     )
     with ddp_job():
-        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.resume)
+        trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
     stopped_by = next((c.received for c in trainer.callbacks if isinstance(c, StopOnSignal) and c.received), None)
     if stopped_by is not None:
         last = next((c.path(trainer) for c in trainer.callbacks if isinstance(c, LastCheckpoint)), None)

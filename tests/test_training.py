@@ -192,6 +192,12 @@ def test_init_from_starts_a_new_run_from_a_checkpoints_weights(dataset, tmp_path
     alone = train(tmp_path, *common, "trainer.max_steps=3", "init_grow=true", f"hydra.run.dir={tmp_path / 'sixth'}",
                   check=False)
     assert alone.returncode != 0 and "init_grow=true grows the model of init_from" in alone.stderr
+    # `~init_from` after an init_from= (a script's command with the start file taken out): a run from scratch
+    # (learning rate 0: its weights stay the fresh initialisation, not the first run's)
+    train(tmp_path, *common, "trainer.max_steps=3", "module.optimizer.lr=0.0", "module.scheduler=null",
+          f"init_from={first}", "~init_from", f"hydra.run.dir={tmp_path / 'seventh'}")
+    fresh = torch.load(tmp_path / "seventh" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    assert any(not torch.equal(fresh[name], value) for name, value in before["state_dict"].items())
 
 
 def rgns_module(**model) -> SimulatorModule:
