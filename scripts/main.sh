@@ -70,14 +70,18 @@ phase "training, both processes (each run's own split of steps and validation: $
 echo "== 3/3 evaluation -> $out/evaluation"
 # every forward metric on all 8 test trajectories, the rollouts in two processes (workers=2: the
 # networks' in a forked copy and here, the solver references here); the inverse at K = 1, 5, 20 and the table's 40;
-# beside the fresh models, the long-trained ones of pretrained/waterdrop40_main/ (scripts/pretrain.sh)
-# that are there, labelled "pretrained" (docs/pretrained.md); data_root: this checkout's dataset for
-# all of them (a checkpoint records the absolute dataset path of the machine that trained it; the
-# generator makes the same bytes everywhere)
-pretrained=$(ls pretrained/waterdrop40_main/*.ckpt 2>/dev/null | paste -sd, - || true)
+# beside the fresh models, the long-trained ones that are there, labelled "pretrained" (docs/pretrained.md):
+# R-GNS and GNS from pretrained/waterdrop40_main_64/ (the recipe study's shipped files, R-GNS 128x2 and
+# GNS 64x4), R-GNS† and Sep-GNS from pretrained/waterdrop40_main/ (32 wide, scripts/pretrain.sh); the
+# fresh models are also rolled out without their hard walls, the pretrained ones with them only
+# (without_hard_walls=fresh: their twins would cost about a minute of the 25); data_root: this
+# checkout's dataset for all of them (a checkpoint records the absolute dataset path of the machine
+# that trained it; the generator makes the same bytes everywhere)
+pretrained=$(ls pretrained/waterdrop40_main_64/{rgns,gns}.ckpt pretrained/waterdrop40_main/{rgns_forward_only,sep_gns}.ckpt \
+  2>/dev/null | paste -sd, - || true)
 .venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best trajectories=8 workers=2 \
-  'task.inverse.horizons=[1,5,20,40]' "pretrained=[$pretrained]" data_root=datasets/waterdrop40_main \
-  hydra.run.dir="$out/evaluation"
+  'task.inverse.horizons=[1,5,20,40]' "pretrained=[$pretrained]" without_hard_walls=fresh \
+  data_root=datasets/waterdrop40_main hydra.run.dir="$out/evaluation"
 phase "evaluation"
 
 ln -sfn "$(basename "$out")" outputs/main/latest

@@ -583,11 +583,11 @@ def test_animation_shows_particles_that_leave_the_box(tmp_path):
     assert red(frames[0]) == 0 and red(frames[1]) > 0 and red(frames[2]) > red(frames[1]) * 1.5
 
 
-@pytest.mark.parametrize("hard_walls", [None, True])
-def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_path, monkeypatch, hard_walls):
+@pytest.mark.parametrize("hard_walls,walls_off", [(None, True), (True, True), (True, "fresh")])
+def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_path, monkeypatch, hard_walls, walls_off):
     """Three runs differing only by their seed get one row of mean and spread; a model that rolls
-    out with hard walls is also scored without them; the farthest excursion out of the box is
-    reported."""
+    out with hard walls is also scored without them (with ``without_hard_walls=fresh``, not a
+    pretrained one); the farthest excursion out of the box is reported."""
     import rgns.evaluation.run as run_module
     from rgns.evaluation.methods import load_checkpoints, seed_groups
 
@@ -601,19 +601,22 @@ def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_pa
             for p in method.model.parameters():
                 p.add_(1e-3 * seed)
         method.model.hard_walls = seed == 0
+        method.info["pretrained"] = seed == 0
         loaded.append(method)
     assert list(seed_groups(loaded).values()) == [[m.label for m in loaded]]
     monkeypatch.setattr(run_module, "load_checkpoints", lambda paths, device, **_: loaded)
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", "task=forward", f"output_dir={tmp_path / 'out'}",
                                              "task.forward.steps=4", *FAST[:3],  # references on: none here, a note
-                                             *([] if hard_walls is None else [f"hard_walls={str(hard_walls).lower()}"])])
+                                             *([] if hard_walls is None else [f"hard_walls={str(hard_walls).lower()}"]),
+                                             f"without_hard_walls={str(walls_off).lower()}"])
     results = evaluate(cfg)
     (name, sections), = results["datasets"].items()
     forward = sections["forward"]["methods"]
     twins = [m.label for m in loaded if f"{m.label}, no hard walls" in forward]
-    # as trained: only the first rolls out with hard walls; hard_walls=true: all of them do
-    assert twins == ([loaded[0].label] if hard_walls is None else [m.label for m in loaded])
+    # as trained: only the first rolls out with hard walls; hard_walls=true: all of them do; fresh: the first is pretrained
+    expected = [loaded[0].label] if hard_walls is None else [m.label for m in loaded]
+    assert twins == (expected if walls_off is True else expected[1:])
     assert all(row["max_outside"] is not None and row["max_outside"] >= 0 for row in forward.values())
     assert all(len(row["density_end_per_trajectory"]) == 2 for row in forward.values())
     group, = sections["over_seeds"].values()
@@ -623,6 +626,14 @@ def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_pa
     assert group["rollout_mse"]["std"] == pytest.approx(np.std(values, ddof=1))
     report = (tmp_path / "out" / "report.md").read_text()
     assert "### Over seeds on" in report and "(3 seeds)" in report and "Farthest outside the box" in report
+
+
+def test_an_unknown_without_hard_walls_value_is_refused_before_any_work(tmp_path):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("evaluate", overrides=["without_hard_walls=pretrained", f"output_dir={tmp_path / 'out'}"])
+    with pytest.raises(ValueError, match="without_hard_walls='pretrained': true, false or fresh"):
+        evaluate(cfg)
+    assert not (tmp_path / "out").exists()
 
 
 def test_the_evaluation_benchmark_compares_one_process_with_two(trained, capsys):

@@ -228,7 +228,8 @@ def load_checkpoints(paths: list[Path], device: str = "cpu", pretrained=(),
         label = describe(config) + (" pretrained" if Path(path).resolve() in pretrained else "")
         methods.append(Method(label, model, extras["data_root"], str(path), dict(
             model=config, global_step=extras["global_step"], overrides=_run_overrides(path),
-            seed=_run_seed(path), base_label=label), extras["data_root_relative"]))
+            seed=_run_seed(path), base_label=label, pretrained=Path(path).resolve() in pretrained),
+            extras["data_root_relative"]))
     if paths and not methods:
         raise CheckpointError("no checkpoint could be read:\n" + "\n".join(unreadable))
     _disambiguate(methods)

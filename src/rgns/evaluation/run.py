@@ -81,6 +81,9 @@ def command_line() -> str:
 
 def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(cfg.threads)
+    walls_off = cfg.get("without_hard_walls", True)
+    if walls_off not in (True, False, "fresh"):
+        raise ValueError(f"without_hard_walls={walls_off!r}: true, false or fresh (all but the pretrained checkpoints)")
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     pretrained = find_checkpoints(ckpt_paths=cfg.pretrained) if cfg.get("pretrained") else []
@@ -129,7 +132,8 @@ def evaluate(cfg: DictConfig) -> dict:
         compared = trained + build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)
         references, note = make_references(dataset) if make_references else ([], None)
         # the figure without the wall, beside the one with it (forward tasks, like the references)
-        twins = without_hard_walls(trained) if cfg.get("without_hard_walls", True) else []
+        twins = without_hard_walls([m for m in trained if walls_off is True or (
+            walls_off == "fresh" and not m.info.get("pretrained"))]) if walls_off else []
         log.info("%s: %d trajectories, %s", dataset.name, len(dataset.trajectories),
                  ", ".join(m.label for m in compared + twins + references))
         if note:
