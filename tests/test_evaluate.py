@@ -629,6 +629,8 @@ def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_pa
 
 
 def test_an_unknown_without_hard_walls_value_is_refused_before_any_work(tmp_path):
+    """``without_hard_walls`` takes true, false or fresh; anything else is an error naming the
+    value, raised before the run folder is made."""
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=["without_hard_walls=pretrained", f"output_dir={tmp_path / 'out'}"])
     with pytest.raises(ValueError, match="without_hard_walls='pretrained': true, false or fresh"):
