@@ -225,11 +225,11 @@ def load_checkpoints(paths: list[Path], device: str = "cpu", pretrained=(),
                 left_out.append(str(err))
             continue
         config = dict(extras["hparams"]["model"])
-        label = describe(config) + (" pretrained" if Path(path).resolve() in pretrained else "")
+        is_pretrained = Path(path).resolve() in pretrained
+        label = describe(config) + (" pretrained" if is_pretrained else "")
         methods.append(Method(label, model, extras["data_root"], str(path), dict(
             model=config, global_step=extras["global_step"], overrides=_run_overrides(path),
-            seed=_run_seed(path), base_label=label, pretrained=Path(path).resolve() in pretrained),
-            extras["data_root_relative"]))
+            seed=_run_seed(path), base_label=label, pretrained=is_pretrained), extras["data_root_relative"]))
     if paths and not methods:
         raise CheckpointError("no checkpoint could be read:\n" + "\n".join(unreadable))
     _disambiguate(methods)

@@ -132,8 +132,9 @@ def evaluate(cfg: DictConfig) -> dict:
         compared = trained + build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)
         references, note = make_references(dataset) if make_references else ([], None)
         # the figure without the wall, beside the one with it (forward tasks, like the references)
-        twins = without_hard_walls([m for m in trained if walls_off is True or (
-            walls_off == "fresh" and not m.info.get("pretrained"))]) if walls_off else []
+        twinned = [m for m in trained if not m.info.get("pretrained")] if walls_off == "fresh" else (
+            trained if walls_off else [])
+        twins = without_hard_walls(twinned)
         log.info("%s: %d trajectories, %s", dataset.name, len(dataset.trajectories),
                  ", ".join(m.label for m in compared + twins + references))
         if note:
