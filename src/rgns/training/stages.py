@@ -279,7 +279,7 @@ def run_recipe(benchmark: str | None, model: str | None, options: dict, extras: 
             command = [*head, *overrides, *tail, f"hydra.run.dir={folder}"]
             log = folder / "output.log"
             say(f"stage {number}/{len(stages)} {stage['name']}: {how}; log {log}")
-            say("  " + shlex.join(command[1:]))
+            say("  " + shlex.join(["python", os.path.relpath(train), *command[2:]]))
             start = time.time()
             rc = run_logged(command, log)
             wall += time.time() - start
