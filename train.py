@@ -7,7 +7,9 @@ model may be deeper than the checkpoint's (R-GNS: the added reversible blocks st
 identity, so the run starts from the checkpoint's predictions); ``resume=`` continues a run.
 
 Every run ends with ``checkpoints/last.ckpt``; one stopped by SIGTERM or Ctrl-C finishes its step,
-saves it, says where it is and exits with 143 / 130 (rgns.training.checkpointing)."""
+saves it, says where it is and exits with 143 / 130 (rgns.training.checkpointing). A run folder
+holding an earlier run's checkpoints is refused unless ``resume=`` continues one of them or
+``overwrite=true`` is given (rgns.runs); a bad dataset, checkpoint or option is one line, exit 1."""
 from __future__ import annotations
 
 import sys
@@ -17,13 +19,14 @@ import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from rgns.runs import register_resolvers
+from rgns.runs import refusals_in_one_line, register_resolvers
 from rgns.training.checkpointing import LastCheckpoint, StopOnSignal
 from rgns.training.ddp import ddp_job
-from rgns.training.module import warm_start
+from rgns.training.module import check_resume, warm_start
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
+@refusals_in_one_line  # a bad dataset, checkpoint or option: one line naming it, exit 1
 def main(cfg: DictConfig) -> float | None:
     L.seed_everything(cfg.seed, workers=True)
 
@@ -39,6 +42,8 @@ def main(cfg: DictConfig) -> float | None:
         warm_start(module, init_from, grow=init_grow)
     elif init_grow:
         raise ValueError("init_grow=true grows the model of init_from=<checkpoint>: set init_from")
+    if resume:  # refused here, by name, rather than deep inside Lightning
+        check_resume(module, resume)
     trainer = instantiate(
         cfg.trainer,
         logger=instantiate(cfg.logger),

@@ -73,11 +73,14 @@ def test_cpu_trainers_instantiate(tmp_path, trainer):
     assert isinstance(built, L.Trainer)
     assert built.world_size == (2 if trainer == "ddp_sim" else 1)
     assert isinstance(built.logger, L.pytorch.loggers.TensorBoardLogger)
+    if trainer == "ddp_sim":  # a bounded wait for a rank that never comes (torch's default: 30 minutes)
+        assert isinstance(built.strategy, L.pytorch.strategies.DDPStrategy)
+        assert built.strategy._timeout.total_seconds() == 600
 
 
 def test_gpu_trainers_ask_for_gpus(tmp_path):
     ddp = train_cfg(tmp_path, "trainer=ddp").trainer
-    assert (ddp.accelerator, ddp.strategy, ddp.devices) == ("gpu", "ddp", -1)
+    assert (ddp.accelerator, ddp.strategy._target_, ddp.devices) == ("gpu", "rgns.training.ddp.ddp_strategy", -1)
     assert train_cfg(tmp_path, "trainer=gpu").trainer.accelerator == "gpu"
 
 

@@ -213,7 +213,7 @@ def test_not_hdf5(tiny_dataset):
 def test_round_trip(tmp_path, tiny_dataset):
     rng = np.random.default_rng(3)
     trajectories = [
-        (rng.normal(size=(7, n, 3)).astype(np.float32), rng.integers(0, 9, n).astype(np.int64)) for n in (5, 1, 9)
+        (rng.uniform(size=(7, n, 3)).astype(np.float32), rng.integers(0, 9, n).astype(np.int64)) for n in (5, 1, 9)
     ]
     trajectories[0][0][2, 1, 0] = -0.0
     metadata = dict(json.loads((tiny_dataset / "metadata.json").read_text()), dim=3, bounds=[[0.0, 1.0]] * 3)

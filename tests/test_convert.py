@@ -109,6 +109,7 @@ def test_convert_is_bit_exact(tmp_path, dim):
     rng = np.random.default_rng(dim)
     metadata = deepmind_metadata(dim, sequence_length=7)
     metadata["context_mean"] = [0.5]  # a key of DeepMind's we do not use must still be carried over
+    metadata["bounds"] = [[0.0, 1.0]] * dim  # the awkward values (0, -0, a denormal) on the wall, not past it
     trajectories = {split: [deepmind_trajectory(rng, 8, n, dim) for n in (13, 3)] for split in SPLITS}
     src = make_source(tmp_path / "src", trajectories, metadata)
 

@@ -12,9 +12,16 @@ application composing ``rgns.conf`` with its Hydra settings calls :func:`registe
 """
 from __future__ import annotations
 
+import functools
 import os
+import shutil
+import signal
+import sys
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
+from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
 _claimed: dict[str, str] = {}
@@ -41,3 +48,124 @@ def register_resolvers() -> None:
     """Register ``${rgns_fresh:...}`` (:func:`claim_run_dir`) with OmegaConf, once."""
     if not OmegaConf.has_resolver("rgns_fresh"):
         OmegaConf.register_new_resolver("rgns_fresh", claim_run_dir)
+
+
+# -- refusals: one line, nothing left behind ----------------------------------------------------
+
+class RunFolderError(ValueError):
+    """A run or evaluation would write over an earlier one's results; the message names them."""
+
+
+class Stopped(BaseException):
+    """SIGTERM or SIGINT reached a command that stops cleanly on them (``signals_stop``). A
+    ``BaseException``, so that no ``except Exception`` on the way swallows it."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+@contextmanager
+def signals_stop() -> Iterator[None]:
+    """Within: SIGTERM and SIGINT raise :class:`Stopped` in the main thread (the handlers from
+    before are restored after)."""
+    def handler(signum, frame):
+        raise Stopped(signum)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _refusal(err: BaseException) -> BaseException | None:
+    """The rgns refusal behind ``err`` (itself, or the cause Hydra's ``instantiate`` wrapped), if any."""
+    from rgns.data.contract import DatasetError
+    from rgns.errors import ConfigError
+    from rgns.targets import UnsafeConfigError
+    from rgns.training.module import CheckpointError
+
+    kinds = (CheckpointError, DatasetError, ConfigError, UnsafeConfigError, RunFolderError, FileNotFoundError)
+    seen = 0
+    while err is not None and seen < 10:
+        if isinstance(err, kinds):
+            return err
+        err, seen = err.__cause__ or err.__context__, seen + 1
+    return None
+
+
+def refusals_in_one_line(task):
+    """Wrap a Hydra task function: a refusal (bad data, checkpoint, option or run folder) is
+    printed as one line, ``error: <message>``, and exits with status 1; a run folder this
+    process claimed for it (``rgns_fresh``) and that holds nothing but Hydra's own files (and
+    an evaluation's ``INCOMPLETE`` marker) is removed, so a refused run leaves no empty folder. Other errors go on to Hydra as before."""
+    @functools.wraps(task)
+    def wrapper(cfg):
+        try:
+            return task(cfg)
+        except Exception as err:
+            refusal = _refusal(err)
+            if refusal is None:
+                raise
+            _discard_claimed_folders()
+            message = " ".join(str(refusal).split()) if isinstance(refusal, FileNotFoundError) else str(refusal)
+            print(f"error: {message}", file=sys.stderr, flush=True)
+            sys.exit(1)
+    return wrapper
+
+
+def _discard_claimed_folders() -> None:
+    for folder in map(Path, _claimed.values()):
+        if folder.is_dir() and all(p.name in (".hydra", "INCOMPLETE") or p.suffix == ".log" for p in folder.iterdir()):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+class KeepEarlierResults(Callback):
+    """Hydra callback: refuse, before Hydra writes anything, a run whose folder
+    (``hydra.run.dir`` given by hand, or a sweep's ``hydra.sweep.dir``) holds an earlier run's
+    results: checkpoints for ``kind: train`` (unless ``resume=`` continues a checkpoint of that
+    very folder), anything at all for ``kind: evaluate``. ``overwrite=true`` on the command line
+    removes those results first and lets the run go on, so a folder never mixes two runs'
+    results."""
+
+    def __init__(self, kind: str):
+        if kind not in ("train", "evaluate"):
+            raise ValueError(f"kind must be 'train' or 'evaluate', got {kind!r}")
+        self.kind = kind
+
+    def on_run_start(self, config, **kwargs) -> None:
+        self._check(Path(str(config.hydra.run.dir)), config, sweep=False)
+
+    def on_multirun_start(self, config, **kwargs) -> None:
+        self._check(Path(str(config.hydra.sweep.dir)), config, sweep=True)
+
+    def _check(self, folder: Path, config, sweep: bool) -> None:
+        if not folder.is_dir():
+            return
+        overwrite = bool(config.get("overwrite", False))
+        if self.kind == "train":
+            pattern = "*/checkpoints/*.ckpt" if sweep else "checkpoints/*.ckpt"
+            found = sorted(folder.glob(pattern))
+            resume = config.get("resume")
+            if found and not sweep and resume and Path(str(resume)).resolve().parent == (folder / "checkpoints").resolve():
+                return  # resume= of this folder's own checkpoint: the run goes on where it was
+            what = "checkpoints of an earlier run"
+            hint = "resume=<its last.ckpt> to continue that run there, "
+        else:
+            found = sorted(folder.iterdir())
+            what = "an earlier evaluation's files"
+            hint = ""
+        if not found:
+            return
+        if overwrite:
+            for path in found:  # removed first: the folder never mixes the earlier results with the new
+                shutil.rmtree(path) if path.is_dir() else path.unlink()
+            print(f"overwrite=true: removed {len(found)} of {what} from {folder} ({found[0].name}"
+                  f"{', ...' if len(found) > 1 else ''})", file=sys.stderr, flush=True)
+            return
+        shown = ", ".join(str(p.relative_to(folder)) for p in found[:3]) + (", ..." if len(found) > 3 else "")
+        print(f"error: {folder}: holds {what} ({shown}); refused, so as not to write over them. Choose another "
+              f"hydra.{'sweep' if sweep else 'run'}.dir, {hint}or add overwrite=true", file=sys.stderr, flush=True)
+        sys.exit(1)

@@ -319,13 +319,71 @@ def check_dataset(folder: str | os.PathLike, min_frames: int | dict[str, int] = 
             if split not in read:
                 continue
             seen = set()
-            for key, (_, particle_type) in zip(data.keys, data):
+            for key, (position, particle_type) in zip(data.keys, data):
+                check_bounds(position, metadata, data._where(key))
                 if (particle_type == KINEMATIC).all():
                     raise DatasetError(f"{data._where(key)}: no moving particles (all {len(particle_type)} of "
                                        f"its particles are kinematic, type {KINEMATIC}): a loss over none is NaN")
                 seen.update(np.unique(particle_type).tolist())
             particle_types[split] = sorted(seen)
     return Contents(metadata, shapes, particle_types)
+
+
+def check_bounds(position: np.ndarray, metadata: dict, where: str) -> None:
+    """Refuse positions ``[T, N, D]`` farther outside the metadata's ``bounds`` than one
+    connectivity radius (particles sit on or just past a wall, never far beyond): data in other
+    units or with wrong bounds would otherwise train or be scored as if nothing were wrong."""
+    bounds = np.asarray(metadata["bounds"], dtype=np.float64)  # [D, 2]
+    margin = float(metadata["default_connectivity_radius"])
+    outside = (position < bounds[:, 0] - margin) | (position > bounds[:, 1] + margin)  # [T, N, D]
+    if outside.any():
+        frame, particle, axis = (int(i[0]) for i in np.nonzero(outside))
+        raise DatasetError(f"{where}: 'position' leaves the metadata's 'bounds' {bounds.tolist()} by more than the "
+                           f"connectivity radius ({margin}): first at frame {frame}, particle {particle}, axis "
+                           f"{axis} ({float(position[frame, particle, axis]):.4g}); check the positions' units and "
+                           "metadata 'bounds'")
+
+
+# how far a checkpoint's data may differ from the data it is used on before it is named
+STATS_TOLERANCE = 0.1  # of the checkpoint's std, for the velocity and acceleration means and stds
+EXACT_TOLERANCE = 1e-6  # relative, for the radius, dt and bounds
+
+
+def metadata_differences(trained: dict, data: dict) -> list[str]:
+    """What differs between the metadata a model was trained with (``trained``) and the data's:
+    ``dim``, ``default_connectivity_radius``, ``dt`` and ``bounds`` beyond rounding
+    (:data:`EXACT_TOLERANCE`), and the velocity and acceleration means and stds by more than
+    :data:`STATS_TOLERANCE` of the trained std. One sentence per key, naming it; empty when
+    they agree. A key missing on either side is not compared."""
+    differences = []
+
+    def present(key):
+        return trained.get(key) is not None and data.get(key) is not None
+
+    if present("dim") and int(trained["dim"]) != int(data["dim"]):
+        differences.append(f"'dim' {trained['dim']} (trained) against {data['dim']}")
+    for key in ("default_connectivity_radius", "dt"):
+        if present(key):
+            a, b = float(trained[key]), float(data[key])
+            if abs(a - b) > EXACT_TOLERANCE * max(abs(a), abs(b)):
+                differences.append(f"'{key}' {a:g} (trained) against {b:g}")
+    if present("bounds"):
+        a, b = np.asarray(trained["bounds"], dtype=float), np.asarray(data["bounds"], dtype=float)
+        if a.shape != b.shape or np.abs(a - b).max() > EXACT_TOLERANCE * max(np.abs(a).max(), 1e-12):
+            differences.append(f"'bounds' {a.tolist()} (trained) against {b.tolist()}")
+    for kind in ("vel", "acc"):
+        std = f"{kind}_std"
+        if not present(std):
+            continue
+        scale = STATS_TOLERANCE * np.asarray(trained[std], dtype=float)
+        for key in (f"{kind}_mean", std):
+            if not present(key):
+                continue
+            a, b = np.asarray(trained[key], dtype=float), np.asarray(data[key], dtype=float)
+            if a.shape != b.shape or (np.abs(a - b) > scale).any():
+                differences.append(f"'{key}' {np.round(a, 8).tolist()} (trained) against {np.round(b, 8).tolist()} "
+                                   f"(more than {STATS_TOLERANCE:g} of the trained '{std}' apart)")
+    return differences
 
 
 def validate_dataset(folder: str | os.PathLike, min_frames: int = 1) -> dict:

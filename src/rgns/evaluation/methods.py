@@ -32,6 +32,7 @@ class Method:
     source: str  # checkpoint path, or "baseline"
     info: dict = field(default_factory=dict)
     data_root_relative: str | None = None  # the same, as its run gave it, when relative
+    trained_metadata: dict | None = None  # the metadata of the data it was trained on (checkpoints)
 
     @property
     def parameters(self) -> int:
@@ -229,7 +230,8 @@ def load_checkpoints(paths: list[Path], device: str = "cpu", pretrained=(),
         label = describe(config) + (" pretrained" if is_pretrained else "")
         methods.append(Method(label, model, extras["data_root"], str(path), dict(
             model=config, global_step=extras["global_step"], overrides=_run_overrides(path),
-            seed=_run_seed(path), base_label=label, pretrained=is_pretrained), extras["data_root_relative"]))
+            seed=_run_seed(path), base_label=label, pretrained=is_pretrained), extras["data_root_relative"],
+            extras["hparams"].get("metadata")))
     if paths and not methods:
         raise CheckpointError("no checkpoint could be read:\n" + "\n".join(unreadable))
     _disambiguate(methods)

@@ -12,6 +12,7 @@
 """
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 
@@ -22,17 +23,30 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from rgns.data.contract import KINEMATIC  # noqa: E402
+from rgns.data.contract import KINEMATIC, atomic_path  # noqa: E402
 
 MARKERS = "osD^v<>P*X"
 LINESTYLES = ("-", "--", "-.", ":")
 
 
+def write_whole(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` whole or not at all (a temporary file renamed into place); a
+    failed write (a full disk) raises ``OSError`` naming ``path`` and leaves no partial file."""
+    try:
+        with atomic_path(path) as tmp:
+            Path(tmp).write_bytes(data)
+    except OSError as err:
+        raise OSError(err.errno, f"{path}: could not be written ({err.strerror or err}); nothing was left in its "
+                                 "place") from None
+
+
 def save_figure(fig, path) -> None:
-    """Lay out, write a PNG at the project's resolution, and free the figure."""
+    """Lay out, write a PNG at the project's resolution (whole or not at all), and free the figure."""
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, dpi=110, format="png")
     plt.close(fig)
+    write_whole(path, buffer.getvalue())
 
 
 def _colours(results: dict) -> dict[str, tuple]:
@@ -193,7 +207,9 @@ def animate(panels: dict[str, np.ndarray], titles: list[str], particle_type, bou
         fig.canvas.draw()
         images.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     plt.close(fig)
-    imageio.mimsave(path, images, duration=1000 / fps, loop=0)
+    buffer = io.BytesIO()
+    imageio.mimsave(buffer, images, format="GIF", duration=1000 / fps, loop=0)
+    write_whole(path, buffer.getvalue())
 
 
 def make_all(results: dict, examples: dict, out: Path, animation) -> list[str]:

@@ -40,6 +40,7 @@ from torch import Tensor
 
 from rgns.data.contract import KINEMATIC, SPLITS
 from rgns.physics import runtime
+from rgns.targets import check_stored_config
 
 
 def metres(value: float) -> str:
@@ -150,6 +151,7 @@ def rebuild_scene(metadata: dict, solver: dict | None = None, **scene):
         raise ValueError("the metadata records no generator (a dataset converted from DeepMind's files), so there "
                          "is no solver to re-run")
     params = copy.deepcopy(generator["params"])
+    check_stored_config(params, "scene", "metadata: generator.params")  # data: only rgns's own scenes are built
     params.update(scene)
     params["solver"] = {**params["solver"], **(solver or {})}
     return instantiate(params)
@@ -182,6 +184,7 @@ class SolverReferences:
                         "DeepMind's files), so there is no solver to re-run.")
         params = copy.deepcopy(generator["params"])
         try:
+            check_stored_config(params, "scene", f"{dataset.root}/metadata.json: generator.params")
             solver = dict(params["solver"])
             solver_class = get_class(solver["_target_"])
             scene = instantiate(params)

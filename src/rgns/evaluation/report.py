@@ -288,6 +288,13 @@ def not_evaluated(results: dict) -> list[str]:
             "", *(f"- {item}" for item in left_out), ""] if left_out else []
 
 
+def warnings_section(results: dict) -> list[str]:
+    """A section naming checkpoints scored on data other than their own, if any."""
+    warnings = results.get("warnings") or []
+    return ["## Warnings", "", "Scored all the same, but read the numbers with this in mind (`warnings` in "
+            "results.json):", "", *(f"- {item}" for item in warnings), ""] if warnings else []
+
+
 def render(results: dict, charts: list[str]) -> str:
     methods = results["methods"]
     sources = [f"- {label}: `{info['source']}`" + (f" (step {info['global_step']})" if info.get("global_step") else "") for label, info in methods.items()]
@@ -295,7 +302,7 @@ def render(results: dict, charts: list[str]) -> str:
     lines = ["# rgns evaluation", "",
              f"Reproduce with: `{results['command']}`", "",
              f"Run {results['date']} on {environment['device']} ({environment['threads']} thread(s)), "
-             f"torch {environment['torch']}. Methods:", "", *sources, "", *not_evaluated(results),
+             f"torch {environment['torch']}. Methods:", "", *sources, "", *warnings_section(results), *not_evaluated(results),
              *forward_tables(results), *seed_tables(results), *efficiency_tables(results), *inverse_tables(results),
              *optimisation_tables(results), *goal_tables(results), "", "## Charts", ""]
     lines += [f"![{_title(c)}]({c})" for c in charts]

@@ -14,13 +14,14 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from rgns.data.contract import DatasetError
+from rgns.data.contract import DatasetError, metadata_differences
 from rgns.evaluation import plots, report
 from rgns.evaluation.methods import (build_baselines, check_fits, find_checkpoints, load_checkpoints, seed_groups,
                                      trained_on, without_hard_walls)
 from rgns.evaluation.tasks import Dataset
 
 log = logging.getLogger(__name__)
+INCOMPLETE = "INCOMPLETE"  # the marker file of an evaluation that has not finished
 
 
 def summarise(sections: dict) -> dict:
@@ -86,6 +87,9 @@ def evaluate(cfg: DictConfig) -> dict:
         raise ValueError(f"without_hard_walls={walls_off!r}: true, false or fresh (all but the pretrained checkpoints)")
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
+    marker = out / INCOMPLETE  # removed once every output is written: a stopped or failed evaluation keeps it
+    marker.write_text(f"{command_line()}\nstarted {datetime.now(timezone.utc).isoformat(timespec='seconds')} and "
+                      "not finished (stopped, or failed): the files here are not a whole evaluation\n")
     pretrained = find_checkpoints(ckpt_paths=cfg.pretrained) if cfg.get("pretrained") else []
     given = cfg.ckpt_path or cfg.ckpt_paths or cfg.checkpoints_dir or not pretrained
     left_out = []  # runs and checkpoints asked for but not evaluated, and why: results.json and report.md too
@@ -106,6 +110,7 @@ def evaluate(cfg: DictConfig) -> dict:
         if root is None:
             raise ValueError(f"{method.source}: the checkpoint does not name its dataset; set data_root=...")
         by_root.setdefault(str(Path(root).resolve()), []).append(method)
+    warnings: list[str] = []  # checkpoints scored on data other than their own: results.json and report.md
     datasets = {}  # every dataset checked, and every checkpoint against its dataset, before any task runs
     for root, trained in by_root.items():
         history = max(m.model.history for m in trained)  # t0 leaves every model its history
@@ -117,13 +122,17 @@ def evaluate(cfg: DictConfig) -> dict:
                                f"least k = {history}) to roll out to")
         for method in trained:
             check_fits(method.model, method.source, dataset.metadata, dataset.particle_types, where)
+            differences = metadata_differences(method.trained_metadata or {}, dataset.metadata)
+            if differences:  # scored all the same (a generalisation test), but never silently
+                warnings.append(f"{method.source}: trained on other data than {where}: {'; '.join(differences)}")
+                log.warning("%s", warnings[-1])
 
     results = dict(command=command_line(), date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                    config=OmegaConf.to_container(cfg, resolve=True),
                    environment=dict(torch=torch.__version__, python=platform.python_version(), device=cfg.device,
                                     threads=torch.get_num_threads()),
                    methods={m.label: dict(source=m.source, **m.info) for m in methods}, not_evaluated=left_out,
-                   datasets={})
+                   warnings=warnings, datasets={})
     examples = {}
     for root, trained in by_root.items():
         dataset, history = datasets[root], trained[0].model.history
@@ -155,8 +164,9 @@ def evaluate(cfg: DictConfig) -> dict:
     for sections in results["datasets"].values():
         sections["summary"] = summarise(sections)
         sections["over_seeds"] = over_seeds(sections["summary"], groups)
-    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    plots.write_whole(out / "results.json", (json.dumps(results, indent=2) + "\n").encode())
     charts = plots.make_all(results, examples, out, cfg.animation)
-    (out / "report.md").write_text(report.render(results, charts))
+    plots.write_whole(out / "report.md", report.render(results, charts).encode())
+    marker.unlink()
     log.info("wrote %s", out / "report.md")
     return results

@@ -203,9 +203,15 @@ def target_points(spec: GoalSpec, bounds, spacing: float, dim: int) -> np.ndarra
         raise ValueError("give exactly one of text, mask, points")
     if spec.points is not None:
         path = Path(spec.points)
-        points = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2)
-        if points.ndim != 2 or points.shape[1] not in (2, dim):
-            raise ValueError(f"{path}: points must be [M, {dim}] or [M, 2], got {points.shape}")
+        try:  # np.load refuses pickled objects (allow_pickle=False): a points file is numbers only
+            points = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2)
+        except (OSError, ValueError) as err:
+            raise ValueError(f"{path}: not a readable points file ({type(err).__name__}: {err})") from None
+        if points.ndim != 2 or points.shape[1] not in (2, dim) or len(points) == 0:
+            raise ValueError(f"{path}: points must be [M, {dim}] or [M, 2] with M >= 1, got {points.shape}")
+        if not np.isfinite(points).all():
+            row = int(np.nonzero(~np.isfinite(points).all(axis=1))[0][0])
+            raise ValueError(f"{path}: points hold NaN or Inf (first in row {row}); a target is finite positions")
     else:
         mask = render_text(spec.text) if spec.text is not None else load_mask(spec.mask, spec.invert)
         pixel_size = spec.width / mask.shape[1] if spec.width is not None and spec.mask else spec.height / mask.shape[0]

@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from rgns.data.contract import KINEMATIC, NUM_PARTICLE_TYPES
 from rgns.data.graph import batched_radius_graph, wall_distance
+from rgns.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,16 @@ class State:
     def to(self, device: torch.device | str) -> "State":
         return State(*(None if t is None else t.to(device)
                        for t in (self.position, self.velocity_history, self.particle_type, self.batch)))
+
+
+def check_size(key: str, value, minimum: int = 1, even: bool = False) -> None:
+    """Refuse a size option (``model.layers``, ``model.latent``) that is not an integer of at
+    least ``minimum`` (and even, where ``even``), naming the key: ``model.layers=two`` or
+    ``model.latent=3`` for R-GNS would otherwise fail deep inside the first layer built."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ConfigError(f"{key}={value!r}: must be an integer of at least {minimum}")
+    if even and value % 2:
+        raise ConfigError(f"{key}={value}: R-GNS splits the latent into two halves, so it must be even")
 
 
 class Simulator(nn.Module):
@@ -92,6 +103,7 @@ class Simulator(nn.Module):
     def __init__(self, metadata: dict, history: int = 5, noise_std: float = 6.7e-4, embedding: int = 16,
                  hard_walls: bool = False):
         super().__init__()
+        check_size("history", history)
         self.history = history
         self.hard_walls = bool(hard_walls)
         self.dim = int(metadata["dim"])
@@ -107,6 +119,11 @@ class Simulator(nn.Module):
         self.register_buffer("acc_mean", stat("acc_mean"))
         self.register_buffer("acc_std_noisy", (stat("acc_std") ** 2 + noise_std**2).sqrt())
         self.type_embedding = nn.Embedding(NUM_PARTICLE_TYPES, embedding)
+        for key, std in (("vel_std", self.vel_std_noisy), ("acc_std", self.acc_std_noisy)):
+            if not bool((std > 0).all()):  # every normalised input or target would divide by zero
+                raise ConfigError(f"metadata '{key}' is {metadata[key]} and noise_std={noise_std}: velocities and "
+                                  f"accelerations are divided by sqrt({key}^2 + noise_std^2), which is 0 here; the "
+                                  f"dataset's particles do not move, or its '{key}' is wrong (or set noise_std > 0)")
 
     @property
     def condition_channels(self) -> int:

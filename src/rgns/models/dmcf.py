@@ -20,7 +20,7 @@ from torch.nn import functional as F
 
 from rgns.data.contract import KINEMATIC
 from rgns.data.graph import batched_radius_graph
-from rgns.models.base import Simulator
+from rgns.models.base import Simulator, check_size
 from rgns.nn.cconv import AntisymmetricConv, ContinuousConv, Neighbourhood, neighbourhood
 
 
@@ -115,6 +115,8 @@ class DMCF(Simulator):
                  wall_spacing: float | None = None, gravity: list | None = None, embedding: int = 0,
                  hard_walls: bool = False, advect: bool = True, antisymmetric: bool = True):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        check_size("model.latent", latent)
+        check_size("model.layers", layers)
         if not embedding:
             self.type_embedding = None  # DMCF's fluid features carry no type
         dim = self.dim

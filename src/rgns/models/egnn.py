@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from rgns.data.contract import KINEMATIC
-from rgns.models.base import Simulator, dataset_gravity
+from rgns.models.base import Simulator, check_size, dataset_gravity
 from rgns.nn.egnn import EquivariantLayer, smooth_norm
 
 
@@ -51,6 +51,8 @@ class EGNN(Simulator):
                  coordinate_aggregation: str = "mean", normalise: bool = False, tanh: bool = False,
                  coordinate_gain: float = 1e-3):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        check_size("model.latent", latent)
+        check_size("model.layers", layers)
         self.register_buffer("gravity", dataset_gravity(metadata))  # [D], position units per frame^2
         walls = 2 * self.dim
         invariants = 2 * history + 2 * walls + embedding

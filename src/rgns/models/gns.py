@@ -6,7 +6,7 @@ import torch
 from torch import Tensor, nn
 
 from rgns.data.graph import edge_channels, edge_features, reverse_edges, wall_distance, wall_gate
-from rgns.models.base import Simulator, dataset_gravity
+from rgns.models.base import Simulator, check_size, dataset_gravity
 from rgns.nn import InteractionNetwork, mlp
 
 
@@ -65,6 +65,8 @@ class GNS(Simulator):
                  basis: str = "velocity", known_gravity: bool = False, edge_velocity: bool = False,
                  decoder: str = "node", galilean: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        check_size("model.latent", latent)
+        check_size("model.layers", layers)
         if basis not in ("velocity", "differences"):
             raise ValueError(f"basis must be 'velocity' or 'differences', got {basis!r}")
         if decoder not in ("node", "pairwise"):

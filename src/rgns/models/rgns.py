@@ -5,7 +5,7 @@ import torch
 from torch import Tensor, nn
 
 from rgns.data.graph import edge_channels, edge_features, kernel_density
-from rgns.models.base import Simulator, dataset_gravity
+from rgns.models.base import Simulator, check_size, dataset_gravity
 from rgns.nn import ILP, RRMP, MLPEncoderDecoder, mlp
 
 
@@ -92,6 +92,8 @@ class RGNS(Simulator):
                  edge_velocity: bool = False, couplings: str = "node", density_condition: bool = False,
                  galilean: bool = False):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        check_size("model.latent", latent, 2, even=True)
+        check_size("model.layers", layers)
         if couplings not in ("node", "pairwise"):
             raise ValueError(f"couplings must be 'node' or 'pairwise', got {couplings!r}")
         known_gravity = known_gravity or couplings == "pairwise"

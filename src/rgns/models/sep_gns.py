@@ -6,7 +6,7 @@ import copy
 
 from torch import Tensor
 
-from rgns.models.base import Simulator
+from rgns.models.base import Simulator, check_size
 from rgns.models.gns import GNS
 
 
@@ -29,6 +29,8 @@ class SepGNS(Simulator):
                  basis: str = "velocity", known_gravity: bool = False, edge_velocity: bool = False,
                  decoder: str = "node"):
         super().__init__(metadata, history, noise_std, embedding, hard_walls)
+        check_size("model.latent", latent)
+        check_size("model.layers", layers)
         del self.type_embedding  # each network owns its own
         reversed_metadata = copy.deepcopy(metadata)
         reversed_metadata["vel_mean"] = [-m for m in metadata["vel_mean"]]

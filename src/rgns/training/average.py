@@ -6,7 +6,8 @@ training, the averaged weights each run validated and saved). Runs that share a 
 small learning rate tend to stay in one basin, where their mean can score better than each; the
 average is only worth keeping where the scores say so (docs/pretrained.md, sixteenth session).
 
-``OUT`` loads wherever a trained checkpoint does (``evaluate.py ckpt_paths=[OUT]``,
+``OUT`` must not exist (``--overwrite`` to replace it) and is never one of the inputs: a
+forgotten output argument would otherwise write the mean over the first checkpoint. ``OUT`` loads wherever a trained checkpoint does (``evaluate.py ckpt_paths=[OUT]``,
 ``init_from=OUT``); it holds no optimiser state, so it cannot be resumed. Every input must be an
 rgns checkpoint of the same model (the same ``model`` config and the same parameter names and
 shapes); a mismatch is refused naming the file, and ``OUT`` is written whole or not at all.
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import torch
 
@@ -73,7 +75,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m rgns.training.average", description=__doc__.split("\n\n")[0])
     parser.add_argument("out", help="the averaged checkpoint to write")
     parser.add_argument("checkpoints", nargs="+", help="two or more checkpoints of one model")
+    parser.add_argument("--overwrite", action="store_true", help="write over OUT if it exists (never over an input)")
     args = parser.parse_args(argv)
+    out = Path(args.out).resolve()
+    if any(Path(path).resolve() == out for path in args.checkpoints):
+        parser.error(f"{args.out} is OUT and also one of the checkpoints to average: it would be written over; "
+                     "give the output first, as a new file")
+    if out.exists() and not args.overwrite:
+        parser.error(f"{args.out} exists (OUT, the first argument, is the file written: was the output "
+                     "forgotten?); refused, so as not to write over it. Give a new file, or --overwrite")
     try:
         averaged = average_checkpoints(args.checkpoints)
     except (CheckpointError, FileNotFoundError, ValueError) as err:

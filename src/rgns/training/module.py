@@ -2,6 +2,7 @@
 bidirectional models, the inverse loss (oldest velocity) on the same batch and graph."""
 from __future__ import annotations
 
+import logging
 import math
 import re
 from pathlib import Path
@@ -12,15 +13,17 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from rgns.data.contract import KINEMATIC
+from rgns.data.contract import KINEMATIC, metadata_differences
 from rgns.data.graph import edge_union
 from rgns.data.windows import noise_level, random_walk_noise, scale_position_noise
 from rgns.models import State
+from rgns.targets import UnsafeConfigError, check_checkpoint_configs
 from rgns.training.losses import density_error
 from rgns.training.recipes import Pushforward, Unroll
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
 
 matplotlib.use("Agg")
+log = logging.getLogger(__name__)
 
 
 MULTISTEP_TARGETS = ("position", "velocity", "acceleration")
@@ -398,7 +401,12 @@ def warm_start(module: SimulatorModule, path: str, grow: bool = False) -> None:
     the layers it adds (``warm_start_added``: R-GNS's reversible blocks past the checkpoint's,
     which start as the identity) keep their initial values, so it starts computing what the
     checkpoint's model computes; a model that adds no such layers is refused."""
-    state = _read_checkpoint(path, "checkpoint to start from (init_from)")["state_dict"]
+    extras = _read_checkpoint(path, "checkpoint to start from (init_from)")
+    state = extras["state_dict"]
+    trained = (extras.get("hyper_parameters") or {}).get("metadata")
+    differences = metadata_differences(trained, module.hparams["metadata"]) if isinstance(trained, dict) else []
+    if differences:  # a fine-tune on other data is a use of init_from=; said, not refused
+        log.warning("%s: trained on other data than this run's: %s", path, "; ".join(differences))
     own = module.state_dict()
     optional = {f"model.{name}" for name in module.model.warm_start_optional()}
     if grow:
@@ -418,6 +426,41 @@ def warm_start(module: SimulatorModule, path: str, grow: bool = False) -> None:
                               f"than the run's config?): {first}") from None
 
 
+def check_resume(module: SimulatorModule, path: str) -> None:
+    """Refuse ``resume=<path>`` before training when the run could not continue it as it was:
+    an unreadable file, another model config than this run's (``model.latent``, another model),
+    weights that do not fit, or other data (:func:`~rgns.data.contract.metadata_differences`
+    between the checkpoint's metadata and this run's dataset). Lightning would otherwise fail
+    deep inside with torch's raw state-dict errors, or train on without a word.
+
+    Raises :class:`CheckpointError` (or FileNotFoundError) naming the file and what differs."""
+    extras = _read_checkpoint(path, "checkpoint to resume (resume=)")
+    hparams = extras.get("hyper_parameters")
+    if not isinstance(hparams, dict) or not isinstance(hparams.get("model"), dict):
+        raise CheckpointError(f"{path}: {_NOT_A_CHECKPOINT}")
+    theirs, ours = hparams["model"], dict(module.hparams["model"])
+    if theirs != ours:
+        keys = sorted(set(theirs) | set(ours), key=str)
+        changed = [f"model.{k}: {theirs.get(k, '(unset)')!r} in the checkpoint, {ours.get(k, '(unset)')!r} here"
+                   for k in keys if theirs.get(k) != ours.get(k)]
+        raise CheckpointError(f"{path}: resume= continues a run with its own model, but this run's differs "
+                              f"({'; '.join(changed[:4])}): drop those overrides, or start a new run from its "
+                              "weights with init_from=")
+    own = module.state_dict()
+    state = extras["state_dict"]
+    misfits = sorted(set(own) ^ set(state)) + sorted(k for k in set(own) & set(state)
+                                                      if tuple(own[k].shape) != tuple(state[k].shape))
+    if misfits:
+        raise CheckpointError(f"{path}: its weights do not fit this run's model ({', '.join(misfits[:3])}"
+                              f"{', ...' if len(misfits) > 3 else ''})")
+    trained = hparams.get("metadata")
+    differences = metadata_differences(trained, module.hparams["metadata"]) if isinstance(trained, dict) else []
+    if differences:
+        raise CheckpointError(f"{path}: trained on other data than this run's ({'; '.join(differences)}): resume= "
+                              "continues a run on its own dataset; start a new run from its weights with init_from= "
+                              "to train on this one")
+
+
 def _read_checkpoint(path: str, role: str) -> dict:
     """What the checkpoint file ``path`` holds, checked to have a ``state_dict``; ``role`` names
     the file in the error when it is missing ("checkpoint to start from (init_from)").
@@ -429,6 +472,14 @@ def _read_checkpoint(path: str, role: str) -> dict:
     extras = _read_plain(path)
     if not isinstance(extras, dict) or not isinstance(extras.get("state_dict"), dict):
         raise CheckpointError(f"{path}: {_NOT_A_CHECKPOINT}")
+    hparams = extras.get("hyper_parameters")
+    if hparams is not None:
+        if not isinstance(hparams, dict):
+            raise CheckpointError(f"{path}: {_NOT_A_CHECKPOINT}")
+        try:  # before anything is built from them: every _target_ one of rgns's own (rgns.targets)
+            check_checkpoint_configs(hparams, str(path))
+        except UnsafeConfigError as err:
+            raise CheckpointError(str(err)) from None
     return extras
 
 
