@@ -583,6 +583,38 @@ def test_animation_shows_particles_that_leave_the_box(tmp_path):
     assert red(frames[0]) == 0 and red(frames[1]) > 0 and red(frames[2]) > red(frames[1]) * 1.5
 
 
+def test_an_animation_of_many_methods_is_a_grid_of_at_most_six_a_row(tmp_path):
+    import imageio.v3 as iio
+
+    from rgns.evaluation.plots import animate
+
+    panels = {f"m{i}": np.full((2, 4, 2), 0.5) for i in range(13)}
+    animate(panels, ["a", "b"], np.zeros(4, dtype=int), [[0.1, 0.9], [0.1, 0.9]], tmp_path / "a.gif", 10, 5)
+    animate(dict(list(panels.items())[:6]), ["a", "b"], np.zeros(4, dtype=int), [[0.1, 0.9], [0.1, 0.9]],
+            tmp_path / "b.gif", 10, 5)
+    grid, row = iio.imread(tmp_path / "a.gif", index=0), iio.imread(tmp_path / "b.gif", index=0)
+    assert grid.shape[1] == row.shape[1]  # 6 columns in both
+    assert grid.shape[0] > 2.5 * row.shape[0]  # 13 panels: 3 rows
+
+
+def test_the_headline_animation_and_the_colours_group_each_methods_variants():
+    from rgns.evaluation.plots import _colours, headline_panels
+
+    labels = ["R-GNS 32x2", "R-GNS 32x2, no hard walls", "GNS 32x4", "Sep-GNS 32x4", "R-GNS 128x2 pretrained",
+              "GNS 64x4 pretrained", "R-GNS† 32x2 pretrained", "constant velocity", "MPM 32 cells/m",
+              "MPM 48 cells/m", "MPM floor (1e-4 m)"]
+    solvers = {"MPM 32 cells/m": {"n_grid": 32, "perturbation": None},
+               "MPM 48 cells/m": {"n_grid": 48, "perturbation": None},
+               "MPM floor (1e-4 m)": {"n_grid": 64, "perturbation": 1e-4}}
+    main, more = headline_panels(labels, solvers)
+    assert main == ["R-GNS 32x2", "GNS 32x4", "R-GNS 128x2 pretrained", "GNS 64x4 pretrained", "MPM 32 cells/m"]
+    assert sorted(main + more) == sorted(labels)
+    colours = _colours({"methods": dict.fromkeys(labels), "datasets": {"d": {"references": {"methods": solvers}}}})
+    assert colours["R-GNS 32x2"] == colours["R-GNS 32x2, no hard walls"]  # a twin is its method's colour
+    learned = [colours[label] for label in labels if label not in solvers and not label.endswith("walls")]
+    assert len(set(learned)) == len(learned)  # every other method a colour of its own
+
+
 @pytest.mark.parametrize("hard_walls,walls_off", [(None, True), (True, True), (True, "fresh")])
 def test_seed_runs_are_aggregated_and_hard_walls_shown_both_ways(trained, tmp_path, monkeypatch, hard_walls, walls_off):
     """Three runs differing only by their seed get one row of mean and spread; a model that rolls

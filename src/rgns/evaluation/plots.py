@@ -1,14 +1,19 @@
 """Charts (PNG) and animations (GIF) of an evaluation:
 
-- ``accuracy_vs_speed.png``: rollout MSE against forward ms per step, one point per method and
-  dataset, marker area by parameter count; the solver references (the dataset's own solver
-  re-run, at its ms per frame) as stars joined into the classical front, their predictability
-  floor as a dotted line;
-- ``error_vs_step.png``: MSE against rollout step, where each forward rollout fails marked;
+- ``accuracy_vs_speed.png``: rollout MSE against forward ms per step, one numbered point per
+  method and dataset (named in the legend beside the chart), marker area by parameter count, a
+  method's no-hard-walls twin hollow in its colour; the solver references (the dataset's own
+  solver re-run, at its ms per frame) as stars joined into the classical front, their
+  predictability floor as a dotted line;
+- ``error_vs_step.png``: MSE against rollout step (twins dashed in their method's colour), where
+  each forward rollout fails marked;
 - ``consistency_vs_k.png``: consistency and inverse MSE against the inverse steps K;
-- ``forward_<dataset>.gif``: ground truth against each method's forward rollout;
+- ``forward_<dataset>.gif``: ground truth beside the R-GNS and GNS runs (fresh and pretrained)
+  and the coarsest solver reference; ``forward_<dataset>_more.gif``: beside every other method;
 - ``inverse_<dataset>.gif``: ground truth against each method's K inverse steps, then the
   K forward steps re-simulated from the inferred state.
+
+Animations are grids of at most six panels a row; legends sit beside the axes, off the data.
 """
 from __future__ import annotations
 
@@ -26,6 +31,7 @@ import numpy as np  # noqa: E402
 from rgns.data.contract import KINEMATIC, atomic_path  # noqa: E402
 
 MARKERS = "osD^v<>P*X"
+PANELS_PER_ROW = 6  # an animation's grid: at most this many panels a row
 LINESTYLES = ("-", "--", "-.", ":")
 
 
@@ -49,14 +55,48 @@ def save_figure(fig, path) -> None:
     write_whole(path, buffer.getvalue())
 
 
+TWIN = ", no hard walls"  # the label suffix of a method's twin rolled out without its hard walls
+
+
+def family(label: str) -> str:
+    """The method a label belongs to: its no-hard-walls twin is drawn beside it, in its colour."""
+    return label.removesuffix(TWIN)
+
+
+def _solvers(results: dict) -> set[str]:
+    return {label for d in results["datasets"].values() for label in d.get("references", {}).get("methods", {})}
+
+
+def _order(results: dict, labels) -> list[str]:
+    """``labels`` in the report's order of their families, each twin right after its method, the
+    solver references last."""
+    families = list(dict.fromkeys(family(label) for label in results["methods"]))
+    solvers = _solvers(results)
+    return sorted(labels, key=lambda label: (label in solvers, families.index(family(label))
+                                             if family(label) in families else len(families), label.endswith(TWIN)))
+
+
 def _colours(results: dict) -> dict[str, tuple]:
-    cmap = plt.get_cmap("tab10")
-    return {label: cmap(i % 10) for i, label in enumerate(results["methods"])}
+    """One colour per method family (a method and its no-hard-walls twin share one), distinct
+    colours for the first ten (then again); the solver references in greys."""
+    solvers = _solvers(results)
+    families = list(dict.fromkeys(family(label) for label in results["methods"] if label not in solvers))
+    palette = [*plt.get_cmap("tab10").colors, *plt.get_cmap("Dark2").colors]
+    colour = {name: palette[i % len(palette)] for i, name in enumerate(families)}
+    greys = iter(str(g) for g in np.linspace(0.15, 0.65, max(len(solvers), 1)))
+    colour.update({label: next(greys) for label in sorted(solvers)})
+    return {label: colour[label if label in solvers else family(label)] for label in results["methods"]}
 
 
 def _styles(results: dict) -> dict[str, str]:
-    """Line styles that keep overlapping curves of different methods apart."""
-    return {label: LINESTYLES[i % len(LINESTYLES)] for i, label in enumerate(results["methods"])}
+    """Solid lines, dashed for a no-hard-walls twin; dotted for a solver reference."""
+    solvers = _solvers(results)
+    return {label: ":" if label in solvers else "--" if label.endswith(TWIN) else "-" for label in results["methods"]}
+
+
+def _legend_outside(ax, **kwargs) -> None:
+    """The legend beside the axes, off the data."""
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, frameon=False, **kwargs)
 
 
 def _array(values) -> np.ndarray:
@@ -64,28 +104,37 @@ def _array(values) -> np.ndarray:
 
 
 def accuracy_vs_speed(results: dict, path: Path) -> bool:
+    """Rollout MSE against ms per step: each learned method a circle (area by parameters; its
+    no-hard-walls twin hollow, in its colour) numbered on the chart and named in the legend beside
+    it, so that no label lies over another; solvers as stars joined into the classical front; the
+    predictability floor as a dotted line."""
     colours = _colours(results)
     points = [(name, label, row) for name, d in results["datasets"].items() for label, row in d["summary"].items()
               if row.get("rollout_mse") is not None and row.get("forward_ms_per_step") is not None]
     if not points:
         return False
     largest = max(row["parameters"] for _, _, row in points) or 1
-    fig, ax = plt.subplots(figsize=(7, 5))
+    fig, ax = plt.subplots(figsize=(11, 6))
     datasets = list(results["datasets"])
-    for name, label, row in points:
+    number = 0
+    order = _order(results, {label for _, label, _ in points})
+    for name, label, row in sorted(points, key=lambda p: (datasets.index(p[0]), order.index(p[1]))):
         solvers = results["datasets"][name].get("references", {}).get("methods", {})
         legend = f"{label} ({name})" if len(datasets) > 1 else label
-        if label in solvers:  # a classical solver: a star, annotated without parameters
-            ax.scatter(row["forward_ms_per_step"], row["rollout_mse"], s=220, color=colours[label], marker="*",
-                       edgecolors="black", linewidths=0.6, label=f"{legend} (solver, ms / frame)", zorder=3)
-            ax.annotate(label, (row["forward_ms_per_step"], row["rollout_mse"]), textcoords="offset points",
-                        xytext=(8, -10), fontsize=8)
+        x, y = row["forward_ms_per_step"], row["rollout_mse"]
+        if label in solvers:  # a classical solver: a star
+            ax.scatter(x, y, s=160, color=colours[label], marker="*", edgecolors="black", linewidths=0.6,
+                       label=f"{legend} (solver, ms / frame)", zorder=3)
             continue
-        area = 40 + 600 * math.sqrt(row["parameters"] / largest)
-        ax.scatter(row["forward_ms_per_step"], row["rollout_mse"], s=area, color=colours[label],
-                   marker=MARKERS[datasets.index(name) % len(MARKERS)], alpha=0.75, edgecolors="black", label=legend)
-        ax.annotate(f"{label}\n{row['parameters'] / 1e6:.3g} M params", (row["forward_ms_per_step"], row["rollout_mse"]),
-                    textcoords="offset points", xytext=(8, 6), fontsize=8)
+        number += 1
+        area = 30 + 400 * math.sqrt(row["parameters"] / largest)
+        twin = label.endswith(TWIN)
+        ax.scatter(x, y, s=area, marker=MARKERS[datasets.index(name) % len(MARKERS)], zorder=3,
+                   facecolors="none" if twin else colours[label], edgecolors=colours[label] if twin else "black",
+                   linewidths=1.4 if twin else 0.6, alpha=0.85,
+                   label=f"{number}: {legend} ({row['parameters'] / 1e6:.3g} M)")
+        ax.annotate(str(number), (x, y), textcoords="offset points", xytext=(0, 0), ha="center", va="center",
+                    fontsize=6.5, zorder=4, color="black" if twin else "white", fontweight="bold")
     for name, d in results["datasets"].items():  # each dataset's classical front, and its floor
         solvers = d.get("references", {}).get("methods", {})
         front = sorted((row["forward_ms_per_step"], row["rollout_mse"]) for n, label, row in points
@@ -102,10 +151,11 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
     ax.set_yscale("log")
     ax.set_xlabel("forward inference time (ms / step, median, radius graph included; solvers: ms / frame)")
     ax.set_ylabel("rollout MSE (position units²)")
-    ax.set_title("Accuracy against speed (lower left is better; marker area ∝ parameters)")
+    ax.set_title("Accuracy against speed (lower left is better; area ∝ parameters; hollow: without hard walls)",
+                 fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.margins(0.25)
-    ax.legend(fontsize=8, markerscale=0.5, loc="best")
+    ax.margins(0.15)
+    _legend_outside(ax, markerscale=0.5)
     save_figure(fig, path)
     return True
 
@@ -115,9 +165,11 @@ def error_vs_step(results: dict, path: Path) -> bool:
     if not datasets:
         return False
     colours, styles = _colours(results), _styles(results)
-    fig, axes = plt.subplots(1, len(datasets), figsize=(7 * len(datasets), 4.8), squeeze=False)
-    for ax, (name, d) in zip(axes[0], datasets.items()):
-        for label, row in d["forward"]["methods"].items():
+    fig, axes = plt.subplots(len(datasets), 1, figsize=(11, 5 * len(datasets)), squeeze=False)
+    for ax, (name, d) in zip(axes[:, 0], datasets.items()):
+        order = _order(results, d["forward"]["methods"])
+        for label in order:
+            row = d["forward"]["methods"][label]
             curve = _array(row["mse_per_step"])
             steps = np.arange(1, len(curve) + 1)
             ax.plot(steps, curve, color=colours[label], linestyle=styles[label], label=label)
@@ -132,10 +184,10 @@ def error_vs_step(results: dict, path: Path) -> bool:
         ax.set_xlabel("rollout step")
         ax.set_ylabel("MSE of positions (position units²)")
         n = s["trajectories"]
-        ax.set_title(f"{name}: error against rollout step\n(mean of {n} trajector{'y' if n == 1 else 'ies'} "
-                     f"from frame {s['start']}; X: first broken step)")
+        ax.set_title(f"{name}: error against rollout step (mean of {n} trajector{'y' if n == 1 else 'ies'} "
+                     f"from frame {s['start']}; dashed: without hard walls; X: first broken step)", fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
+        _legend_outside(ax)
     save_figure(fig, path)
     return True
 
@@ -145,7 +197,7 @@ def consistency_vs_k(results: dict, path: Path) -> bool:
     if not datasets:
         return False
     colours, styles = _colours(results), _styles(results)
-    fig, axes = plt.subplots(len(datasets), 2, figsize=(12, 4.5 * len(datasets)), squeeze=False)
+    fig, axes = plt.subplots(len(datasets), 2, figsize=(15, 4.5 * len(datasets)), squeeze=False)
     for (left, right), (name, d) in zip(axes, datasets.items()):
         s = d["inverse"]["settings"]
         for label, row in d["inverse"]["methods"].items():
@@ -162,7 +214,7 @@ def consistency_vs_k(results: dict, path: Path) -> bool:
             ax.set_ylabel("MSE of positions (position units²)")
             ax.set_title(f"{name}: {title}", fontsize=10)
             ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=8)
+        _legend_outside(right)
     save_figure(fig, path)
     return True
 
@@ -180,11 +232,17 @@ def animate(panels: dict[str, np.ndarray], titles: list[str], particle_type, bou
     low, high = np.asarray(bounds, dtype=float)[:2, 0], np.asarray(bounds, dtype=float)[:2, 1]
     margin = 0.1 * (high - low)
     shown_low, shown_high = low - margin, high + margin
-    fig, axes = plt.subplots(1, len(panels), figsize=(2.4 * len(panels), 2.75), squeeze=False)
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.02, top=0.82, wspace=0.06)
+    columns = min(len(panels), PANELS_PER_ROW)
+    rows = math.ceil(len(panels) / columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(2.4 * columns, 2.45 * rows + 0.3), squeeze=False)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.02, top=1 - 0.45 / (2.45 * rows + 0.3), wspace=0.06,
+                        hspace=0.2)
+    for ax in axes.flat[len(panels):]:
+        ax.set_axis_off()
+    axes = axes.reshape(1, -1)[:, :len(panels)]
     scatters, names = [], list(panels)
     for ax, name in zip(axes[0], names):
-        scatters.append(ax.scatter([], [], s=4, c=[]))
+        scatters.append(ax.scatter([], [], s=4, c=[], clip_on=False))  # off-chart ones, on the edge, drawn whole
         ax.add_patch(plt.Rectangle(low, *(high - low), fill=False, lw=0.6, ec="0.3"))
         ax.set_xlim(shown_low[0], shown_high[0])
         ax.set_ylim(shown_low[1], shown_high[1])
@@ -212,6 +270,18 @@ def animate(panels: dict[str, np.ndarray], titles: list[str], particle_type, bou
     write_whole(path, buffer.getvalue())
 
 
+def headline_panels(labels: list[str], solvers: dict, most: int = PANELS_PER_ROW - 1) -> tuple[list[str], list[str]]:
+    """The forward animation's panels beside the truth, and the rest (a second animation): the
+    R-GNS and GNS runs (fresh and pretrained; not their no-hard-walls twins, not R-GNS†) and the
+    coarsest solver reference (the half-resolution solver), at most ``most``; without any of
+    those, the first ``most`` labels."""
+    learned = [label for label in labels if label.startswith(("R-GNS ", "GNS ")) and not label.endswith(TWIN)]
+    coarse = [label for label in labels if label in solvers and not solvers[label].get("perturbation")]
+    coarse = sorted(coarse, key=lambda label: solvers[label].get("n_grid") or math.inf)[:1]
+    main = (learned[:most - len(coarse)] + coarse) or labels[:most]
+    return main, [label for label in labels if label not in main]
+
+
 def make_all(results: dict, examples: dict, out: Path, animation) -> list[str]:
     """Write every chart and animation; the file names written, in the report's order."""
     written = []
@@ -225,10 +295,17 @@ def make_all(results: dict, examples: dict, out: Path, animation) -> list[str]:
         if forward and forward["predicted"]:
             t0 = forward["start"]
             titles = [f"forward rollout: frame {t0 + 1 + i} (step {i + 1})" for i in range(len(forward["truth"]))]
-            panels = {"ground truth": forward["truth"].numpy(), **{k: v.numpy() for k, v in forward["predicted"].items()}}
-            animate(panels, titles, forward["particle_type"], bounds, out / f"forward_{dataset}.gif",
-                    animation.max_frames, animation.fps)
+            predicted = {k: v.numpy() for k, v in forward["predicted"].items()}
+            solvers = results["datasets"][dataset].get("references", {}).get("methods", {})
+            main, more = headline_panels(list(predicted), solvers)
+            truth = {"ground truth": forward["truth"].numpy()}
+            animate({**truth, **{k: predicted[k] for k in main}}, titles, forward["particle_type"], bounds,
+                    out / f"forward_{dataset}.gif", animation.max_frames, animation.fps)
             written.append(f"forward_{dataset}.gif")
+            if more:  # every other method, in a second animation
+                animate({**truth, **{k: predicted[k] for k in more}}, titles, forward["particle_type"], bounds,
+                        out / f"forward_{dataset}_more.gif", animation.max_frames, animation.fps)
+                written.append(f"forward_{dataset}_more.gif")
         inverse = example.get("inverse")
         if inverse and inverse["inferred"]:
             t0, K, truth = inverse["start"], inverse["horizon"], inverse["truth"].numpy()  # frames t0 .. t0+K
