@@ -363,3 +363,19 @@ def test_a_killed_ddp_rank_ends_the_run_within_seconds_naming_the_rank(dataset, 
             process.kill()
     assert process.returncode == 1 and time.monotonic() - killed < 30
     assert f"DDP rank 1 (pid {rank1}) was killed by SIGKILL" in err, err
+
+
+@pytest.mark.parametrize("tool", ["tasks", "goal"])
+def test_the_inverse_tools_refuse_an_out_folder_holding_files(trained, tmp_path, capsys, tool):
+    from rgns.inverse.goal import main as goal_main
+    from rgns.inverse.tasks import main as tasks_main
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "inverse_comparison.json").write_text("{}")
+    argv = ["--ckpt", str(trained), "--out", str(out)] + (["--text", "L"] if tool == "goal" else [])
+    with pytest.raises(SystemExit) as stop:
+        (goal_main if tool == "goal" else tasks_main)(argv)
+    assert stop.value.code == 2
+    assert f"--out {out}: holds files already" in capsys.readouterr().err
+    assert (out / "inverse_comparison.json").read_text() == "{}"

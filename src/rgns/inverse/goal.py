@@ -46,6 +46,7 @@ Command line (works without ``evaluate.py``)::
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import logging
 import math
@@ -59,7 +60,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.evaluation.metrics import chamfer, optimal_transport
-from rgns.evaluation.plots import save_figure
+from rgns.evaluation.plots import save_figure, write_whole
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import dataset_spacing
 from rgns.inverse.tasks import _optimiser_simulator, _warm_up
@@ -470,7 +471,9 @@ def goal_animation(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, 
         fig.canvas.draw()
         images.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
         plt.close(fig)
-    imageio.mimsave(path, images, duration=1000 / fps, loop=0)
+    buffer = io.BytesIO()
+    imageio.mimsave(buffer, images, format="GIF", duration=1000 / fps, loop=0)
+    write_whole(path, buffer.getvalue())
 
 
 # ---------------------------------------------------------------------------------------------- entry points
@@ -552,7 +555,7 @@ def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, 
                    physics=dict(solver=None if solver is None else solver.label, note=note,
                                 thresholds=dict(overlap=OVERLAP, isolated=ISOLATED), train_max_speed=max_speed),
                    horizons=per_k, files=files + [f"goal_{name}.json"])
-    (out_dir / f"goal_{name}.json").write_text(json.dumps(results, indent=2) + "\n")
+    write_whole(out_dir / f"goal_{name}.json", (json.dumps(results, indent=2) + "\n").encode())
     return results
 
 
@@ -616,7 +619,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--iterations", type=int, default=30, help="the stopping rule's iteration cap")
     parser.add_argument("--no-physics", action="store_true", help="skip the ground-truth solver's check")
     parser.add_argument("--out", required=True)
+    parser.add_argument("--overwrite", action="store_true", help="write into an --out folder that holds files already")
     args = parser.parse_args(argv)
+    if Path(args.out).is_dir() and any(Path(args.out).iterdir()) and not args.overwrite:
+        parser.error(f"--out {args.out}: holds files already (an earlier run's results?); refused, so as not to write "
+                     "over them. Choose another folder, or add --overwrite")
     if min(args.steps) < 1 or args.iterations < 1:
         parser.error(f"--steps {' '.join(map(str, args.steps))} and --iterations {args.iterations}: each must be at least 1")
     if not set(args.optimisers) <= {"sph", "mpm"}:

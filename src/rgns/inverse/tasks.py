@@ -41,7 +41,7 @@ from rgns.data.contract import KINEMATIC, SPLITS, DatasetError, check_dataset, o
 from rgns.inverse.feedforward import feed_forward_inverse, forward_stability, inverse_stability
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import LearnedSimulator, SPHSimulator, sph_for_dataset
-from rgns.evaluation.plots import save_figure
+from rgns.evaluation.plots import save_figure, write_whole
 from rgns.models import State, count_parameters
 
 log = logging.getLogger(__name__)
@@ -254,8 +254,8 @@ def write_outputs(results: dict, out_dir: Path) -> None:
     """``inverse_comparison.json``, ``inverse_comparison.md`` (the table at the table horizon and the K
     sweep) and ``inverse_k_sweep.png`` (consistency MSE and seconds against K, per method)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "inverse_comparison.json").write_text(json.dumps(results, indent=2, default=str) + "\n")
-    (out_dir / "inverse_comparison.md").write_text(markdown(results))
+    write_whole(out_dir / "inverse_comparison.json", (json.dumps(results, indent=2, default=str) + "\n").encode())
+    write_whole(out_dir / "inverse_comparison.md", markdown(results).encode())
     k_sweep_chart(results, out_dir / "inverse_k_sweep.png")
 
 
@@ -380,7 +380,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--budget-iterations", type=int, default=0,
                         help="also time each optimiser for exactly this many iterations at the table horizon")
     parser.add_argument("--out", required=True)
+    parser.add_argument("--overwrite", action="store_true", help="write into an --out folder that holds files already")
     args = parser.parse_args(argv)
+    if Path(args.out).is_dir() and any(Path(args.out).iterdir()) and not args.overwrite:
+        parser.error(f"--out {args.out}: holds files already (an earlier run's results?); refused, so as not to write "
+                     "over them. Choose another folder, or add --overwrite")
     if args.label and len(args.label) != len(args.ckpt):
         parser.error(f"{len(args.label)} --label for {len(args.ckpt)} --ckpt: give one label per checkpoint, or none")
     if min(args.horizons) < 1 or args.trajectories < 1 or args.iterations < 1:
