@@ -32,6 +32,7 @@ from rgns.data.contract import KINEMATIC, atomic_path  # noqa: E402
 
 MARKERS = "osD^v<>P*X"
 PANELS_PER_ROW = 6  # an animation's grid: at most this many panels a row
+NUMBER_OFFSETS = ((14, 12), (14, -12), (-14, 12), (-14, -12), (0, 18), (0, -18))  # points: numbers of close points
 LINESTYLES = ("-", "--", "-.", ":")
 
 
@@ -116,7 +117,7 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
     largest = max(row["parameters"] for _, _, row in points) or 1
     fig, ax = plt.subplots(figsize=(11, 6))
     datasets = list(results["datasets"])
-    number = 0
+    number, placed = 0, []
     order = _order(results, {label for _, label, _ in points})
     for name, label, row in sorted(points, key=lambda p: (datasets.index(p[0]), order.index(p[1]))):
         solvers = results["datasets"][name].get("references", {}).get("methods", {})
@@ -127,14 +128,21 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
                        label=f"{legend} (solver, ms / frame)", zorder=3)
             continue
         number += 1
-        area = 30 + 400 * math.sqrt(row["parameters"] / largest)
+        area = 25 + 300 * math.sqrt(row["parameters"] / largest)
         twin = label.endswith(TWIN)
         ax.scatter(x, y, s=area, marker=MARKERS[datasets.index(name) % len(MARKERS)], zorder=3,
                    facecolors="none" if twin else colours[label], edgecolors=colours[label] if twin else "black",
-                   linewidths=1.4 if twin else 0.6, alpha=0.85,
+                   linewidths=1.4 if twin else 0.6, alpha=0.65,  # overlapping points stay visible
                    label=f"{number}: {legend} ({row['parameters'] / 1e6:.3g} M)")
-        ax.annotate(str(number), (x, y), textcoords="offset points", xytext=(0, 0), ha="center", va="center",
-                    fontsize=6.5, zorder=4, color="black" if twin else "white", fontweight="bold")
+        # the number on its point, or beside it with a leader where an earlier number sits there already
+        here = (math.log10(max(x, 1e-12)), math.log10(max(y, 1e-30)))
+        clash = sum(abs(here[0] - a) < 0.06 and abs(here[1] - b) < 0.1 for a, b in placed)
+        placed.append(here)
+        offset = (0, 0) if not clash else NUMBER_OFFSETS[(clash - 1) % len(NUMBER_OFFSETS)]
+        ax.annotate(str(number), (x, y), textcoords="offset points", xytext=offset, ha="center", va="center",
+                    fontsize=6.5, zorder=4, fontweight="bold",
+                    color="white" if not clash and not twin else "black",
+                    arrowprops=dict(arrowstyle="-", lw=0.5, color="0.3") if clash else None)
     for name, d in results["datasets"].items():  # each dataset's classical front, and its floor
         solvers = d.get("references", {}).get("methods", {})
         front = sorted((row["forward_ms_per_step"], row["rollout_mse"]) for n, label, row in points
