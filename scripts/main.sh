@@ -29,37 +29,45 @@ echo "== 1/3 default dataset: datasets/waterdrop40_main (the waterdrop scene, 32
 phase "dataset (generated, or found complete)"
 
 # model, its steps and its time cap; the budgets come from docs/main_job.md's measurements
-train() {
-  local model=$1 steps=$2 cap=$3; shift 3
+train() {  # train FOLDER MODEL STEPS CAP [EXPERIMENT] [overrides]: experiment=main unless another is given
+  local folder=$1 model=$2 steps=$3 cap=$4 experiment=main; shift 4
+  [[ ${1:-} == experiment=* ]] && { experiment=${1#experiment=}; shift; }
   # into a log file: progress lines (callbacks.time_split) instead of a progress bar redrawn every step
-  .venv/bin/python train.py experiment=main model="$model" trainer.max_steps="$steps" trainer.max_time="$cap" \
-    trainer.enable_progress_bar=false hydra.run.dir="$out/train/$model" "$@" > "$out/train/$model.log" 2>&1
+  .venv/bin/python train.py experiment="$experiment" model="$model" trainer.max_steps="$steps" trainer.max_time="$cap" \
+    trainer.enable_progress_bar=false hydra.run.dir="$out/$folder/$model" "$@" > "$out/$folder/$model.log" 2>&1
 }
-echo "== 2/3 training -> $out/train (R-GNS, then Sep-GNS | GNS; logs: $out/train/<model>.log)"
+# the second stage of R-GNS and GNS (conf/experiment/main_stage.yaml): from the base run's best
+# checkpoint, pushes of up to 40 steps, the loss unrolled through 6, the density term
+stage() {
+  local model=$1; shift
+  train train "$model" 600 00:00:04:00 experiment=main_stage \
+    init_from="$(ls "$out/base/$model"/checkpoints/best-step*.ckpt | head -n 1)" "$@"
+}
+mkdir -p "$out/base"
+echo "== 2/3 training -> $out/train (R-GNS, then Sep-GNS | GNS; bases in $out/base; logs: <folder>/<model>.log)"
 # sizes and recipes per model: docs/main_job.md (equal message-passing steps: R-GNS's 2 blocks hold
-# 4 couplings, GNS has 4 interaction layers; pushforward helped GNS, R-GNS needs the time for steps)
-# (each step budget is a multiple of the validation interval, 2,500: the evaluated checkpoint is
-# chosen at validations; with the pairwise options a step costs more: on an idle 2-core machine
-# R-GNS ends its steps 5 s inside its cap and GNS's cap stops it near step 15,800
-# (docs/main_job.md): the checkpoint is then chosen among the validations reached)
+# 4 couplings, GNS has 4 interaction layers; pushforward helped GNS's base)
+# (R-GNS and GNS: a base run with the one-step loss (GNS: pushforward), then the 600-step stage
+# that keeps the water's density (main_stage); Sep-GNS one run. Each base's checkpoint is chosen
+# at its validations (every 2,500 steps); the caps, not the step counts, end the bases on a 2-core
+# machine (R-GNS near step 6,500, GNS near 11,800) and the stages (near step 450-500))
 # (R-GNS without the memory-saving backward: plain autograd is 1.4x the steps/s at this size on a CPU;
 # R-GNS and GNS compiled (module.compile): 1.4-2x their eager steps/s in this job after 1-2 min of
 # compilation; Sep-GNS's short run stays eager; docs/main_job.md)
-# (GNS has a core to itself: 20,000 steps, where 7,500 left it 1.25x the 0.1x bar; R-GNS's best
-# checkpoint is often an early one, so it shares its core with Sep-GNS; caps sized for a 2-core
-# machine that trains GNS 32x4 eager at about 20 steps/s per process; docs/main_job.md)
 # (pair terms that cancel, momentum conserved away from the walls: R-GNS's couplings=pairwise and
 # GNS's decoder=pairwise, with gravity as their reference; the three-seed study in docs/main_job.md)
-( train rgns 12500 00:00:11:00 model.memory_saving=false module.compile=true model.couplings=pairwise "$@" \
-  && train sep_gns 5000 00:00:04:00 model.layers=4 recipe=pushforward model.decoder=pairwise "$@" ) &
+rgns=(model.memory_saving=false module.compile=true model.couplings=pairwise)
+gns=(model.layers=4 module.compile=true model.decoder=pairwise)
+( train base rgns 7500 00:00:07:00 "${rgns[@]}" "$@" && stage rgns "${rgns[@]}" "$@" \
+  && train train sep_gns 5000 00:00:04:00 model.layers=4 recipe=pushforward model.decoder=pairwise "$@" ) &
 first=$!
-train gns 20000 00:00:15:00 model.layers=4 recipe=pushforward module.compile=true model.decoder=pairwise "$@" &
+( train base gns 15000 00:00:11:00 "${gns[@]}" recipe=pushforward "$@" && stage gns "${gns[@]}" "$@" ) &
 second=$!
 status=0
 wait $first || status=$?
 wait $second || status=$?
-for model in rgns gns sep_gns; do
-  [ -f "$out/train/$model.log" ] && grep -h "^\[time\]" "$out/train/$model.log" | sed "s/^/$model: /" || true
+for log in "$out"/base/*.log "$out"/train/*.log; do
+  [ -f "$log" ] && grep -h "^\[time\]" "$log" | sed "s|^|${log#$out/}: |" || true
 done
 if [ "$status" -ne 0 ]; then
   echo "training failed (exit $status): see $out/train/*.log" >&2

@@ -99,26 +99,38 @@ def test_default_data_makes_itself(tmp_path):
 
 
 def main_job_runs() -> list[list[str]]:
-    """The train.py overrides of each run of scripts/main.sh, read from the script itself."""
+    """The train.py overrides of each run of scripts/main.sh, read from the script itself: the
+    ``train FOLDER MODEL STEPS CAP ...`` runs and the ``stage MODEL ...`` runs (``stage``'s own
+    steps, cap and experiment), with the script's override arrays (``rgns=(...)``) expanded."""
     import re
     import shlex
     from pathlib import Path
 
     script = (Path(__file__).parents[1] / "scripts" / "main.sh").read_text()
-    common = shlex.split(re.search(r'train\.py (experiment=main .*?) hydra\.run\.dir', script, re.S).group(1)
-                         .replace("\\\n", " "))
-    runs = []
-    for model, steps, cap, extra in re.findall(r'train (\w+) (\d+) (\S+) ((?:[\w.]+=\S+ )*)"\$@"', script):
-        values = {"$model": model, "$steps": steps, "$cap": cap}
-        resolved = [re.sub(r'"?(\$\w+)"?', lambda m: values[m.group(1)], arg) for arg in common]
-        runs.append(resolved + extra.split())
+    arrays = {name: shlex.split(body) for name, body in re.findall(r"^(\w+)=\(([^)]*)\)", script, re.M)}
+
+    def expand(extra: str) -> list[str]:
+        return [o for token in shlex.split(extra) for o in arrays.get(token.removeprefix("${").removesuffix("[@]}"),
+                                                                       [token])]
+
+    def run(experiment, model, steps, cap, extra):
+        return [f"experiment={experiment}", f"model={model}", f"trainer.max_steps={steps}", f"trainer.max_time={cap}",
+                "trainer.enable_progress_bar=false", *expand(extra)]
+
+    assert 'train.py experiment="$experiment" model="$model" trainer.max_steps="$steps" trainer.max_time="$cap"' in script
+    runs = [run("main", model, steps, cap, extra) for model, steps, cap, extra in
+            re.findall(r'train \w+ (\w+) (\d+) (\S+) ((?:(?:[\w.]+=\S+|"\$\{\w+\[@\]\}") )*)"\$@"', script)]
+    steps, cap, experiment = re.search(r'train train "\$model" (\d+) (\S+) experiment=(\w+)', script).groups()
+    runs += [run(experiment, model, steps, cap, extra) for model, extra in
+             re.findall(r'stage (\w+) ((?:"\$\{\w+\[@\]\}" )*)"\$@"', script)]
     return runs
 
 
 def test_main_job_runs_compose_and_instantiate(tmp_path, tiny_dataset):
     """Every training run of scripts/main.sh composes with the overrides the script passes."""
     runs = main_job_runs()
-    assert sorted(r[1] for r in runs) == ["model=gns", "model=rgns", "model=sep_gns"]
+    assert sorted(r[1] for r in runs) == ["model=gns", "model=gns", "model=rgns", "model=rgns", "model=sep_gns"]
+    assert sum(r[0] == "experiment=main_stage" for r in runs) == 2  # R-GNS's and GNS's second stage
     for overrides in runs:
         cfg = train_cfg(tmp_path, *overrides, f"data.root={tiny_dataset}", "data.make=null")
         assert cfg.trainer.enable_progress_bar is False and cfg.model.hard_walls is True

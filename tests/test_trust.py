@@ -17,7 +17,8 @@ import pytest
 import torch
 from conftest import make_metadata
 from hydra.utils import instantiate
-from test_inputs import QUICK, config, evaluate_config, naming, trained, write_checkpoint, write_dataset  # noqa: F401 (trained: a fixture)
+from test_inputs import (QUICK, config, evaluate_config, naming, trained,  # noqa: F401 (trained: a fixture)
+                         write_checkpoint, write_dataset)
 
 from rgns.data.contract import DatasetError, check_dataset, metadata_differences, read_metadata, write_metadata
 from rgns.errors import ConfigError

@@ -52,10 +52,6 @@ def register_resolvers() -> None:
 
 # -- refusals: one line, nothing left behind ----------------------------------------------------
 
-class RunFolderError(ValueError):
-    """A run or evaluation would write over an earlier one's results; the message names them."""
-
-
 class Stopped(BaseException):
     """SIGTERM or SIGINT reached a command that stops cleanly on them (``signals_stop``). A
     ``BaseException``, so that no ``except Exception`` on the way swallows it."""
@@ -87,7 +83,7 @@ def _refusal(err: BaseException) -> BaseException | None:
     from rgns.targets import UnsafeConfigError
     from rgns.training.module import CheckpointError
 
-    kinds = (CheckpointError, DatasetError, ConfigError, UnsafeConfigError, RunFolderError, FileNotFoundError)
+    kinds = (CheckpointError, DatasetError, ConfigError, UnsafeConfigError, FileNotFoundError)
     seen = 0
     while err is not None and seen < 10:
         if isinstance(err, kinds):
@@ -97,10 +93,11 @@ def _refusal(err: BaseException) -> BaseException | None:
 
 
 def refusals_in_one_line(task):
-    """Wrap a Hydra task function: a refusal (bad data, checkpoint, option or run folder) is
+    """Wrap a Hydra task function: a refusal (bad data, checkpoint or option) is
     printed as one line, ``error: <message>``, and exits with status 1; a run folder this
     process claimed for it (``rgns_fresh``) and that holds nothing but Hydra's own files (and
-    an evaluation's ``INCOMPLETE`` marker) is removed, so a refused run leaves no empty folder. Other errors go on to Hydra as before."""
+    an evaluation's ``INCOMPLETE`` marker) is removed, so a refused run leaves no empty folder.
+    Other errors go on to Hydra as before."""
     @functools.wraps(task)
     def wrapper(cfg):
         try:
@@ -149,7 +146,8 @@ class KeepEarlierResults(Callback):
             pattern = "*/checkpoints/*.ckpt" if sweep else "checkpoints/*.ckpt"
             found = sorted(folder.glob(pattern))
             resume = config.get("resume")
-            if found and not sweep and resume and Path(str(resume)).resolve().parent == (folder / "checkpoints").resolve():
+            own = resume and Path(str(resume)).resolve().parent == (folder / "checkpoints").resolve()
+            if found and not sweep and own:
                 return  # resume= of this folder's own checkpoint: the run goes on where it was
             what = "checkpoints of an earlier run"
             hint = "resume=<its last.ckpt> to continue that run there, "

@@ -4,7 +4,7 @@
 weights are the mean of the given checkpoints' (their ``state_dict``: with weight averaging in
 training, the averaged weights each run validated and saved). Runs that share a start file and a
 small learning rate tend to stay in one basin, where their mean can score better than each; the
-average is only worth keeping where the scores say so (docs/pretrained.md, sixteenth session).
+average is only worth keeping where the scores say so (docs/recipe_study.md).
 
 ``OUT`` must not exist (``--overwrite`` to replace it) and is never one of the inputs: a
 forgotten output argument would otherwise write the mean over the first checkpoint. ``OUT`` loads wherever a trained checkpoint does (``evaluate.py ckpt_paths=[OUT]``,
