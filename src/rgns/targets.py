@@ -28,7 +28,8 @@ import importlib
 from typing import Any
 
 _PREFIXES = {"model": ("rgns.",), "loss": ("rgns.",), "optimizer": ("torch.optim.",),
-             "scheduler": ("torch.optim.lr_scheduler.",), "scene": ("rgns.data.scenes.", "rgns.physics.")}
+             "scheduler": ("torch.optim.lr_scheduler.",), "scene": ("rgns.data.scenes.", "rgns.physics."),
+             "none": ()}  # "none": an entry rgns builds nothing from, where any _target_ is refused
 
 
 class UnsafeConfigError(ValueError):
@@ -89,7 +90,8 @@ def allowed_target(name: object, role: str) -> bool:
 def check_stored_config(config: Any, role: str, where: str) -> None:
     """Refuse ``config`` (plain dicts and lists, as read from a file) unless each ``_target_`` in
     it is one ``role`` allows: at its top for ``model``, ``loss``, ``optimizer`` and
-    ``scheduler``; anywhere for ``scene`` (a scene nests its solver and shapes). ``where`` names
+    ``scheduler``; anywhere for ``scene`` (a scene nests its solver and shapes); nowhere for
+    ``none``. ``where`` names
     the file and key in the error (``C: hyper_parameters.loss``).
 
     Raises :class:`UnsafeConfigError`."""
@@ -101,8 +103,9 @@ def check_stored_config(config: Any, role: str, where: str) -> None:
             continue
         nested = path != where
         if (nested and role != "scene") or not allowed_target(value["_target_"], role):
-            what = "a nested _target_, which a stored config never needs" if nested and role != "scene" else (
-                f"not one of rgns's own {role} classes")
+            what = ("in an entry rgns builds nothing from" if role == "none" else
+                    "a nested _target_, which a stored config never needs" if nested and role != "scene" else
+                    f"not one of rgns's own {role} classes")
             raise UnsafeConfigError(f"{path}._target_: {str(value['_target_'])[:120]!r} is {what}; refused (a "
                                     "checkpoint or dataset is data: rgns rebuilds only its own models, losses, "
                                     "optimisers, schedulers and scenes from it)")
@@ -112,32 +115,22 @@ def check_checkpoint_configs(hparams: dict, where: str) -> None:
     """Check every config a checkpoint's ``hyper_parameters`` hold (:func:`check_stored_config`):
     ``model``, ``loss``, ``optimizer`` and ``scheduler`` against their roles, the metadata's
     generator against the scene role, and no ``_target_`` anywhere else."""
-    roles = {"model": "model", "loss": "loss", "optimizer": "optimizer", "scheduler": "scheduler"}
     for key, value in hparams.items():
         here = f"{where}: hyper_parameters.{key}"
-        if key in roles:
+        if key in ("model", "loss", "optimizer", "scheduler"):
             if value is not None:
-                check_stored_config(value, roles[key], here)
+                check_stored_config(value, key, here)
         elif key == "metadata" and isinstance(value, dict):
             generator = value.get("generator")
-            rest = {k: v for k, v in value.items() if k != "generator"}
-            _refuse_any_target(rest, here)  # no _target_ at all outside the generator's scene
+            # no _target_ at all outside the generator's scene
+            check_stored_config({k: v for k, v in value.items() if k != "generator"}, "none", here)
             if isinstance(generator, dict):
                 check_stored_config(generator.get("params"), "scene", f"{here}.generator.params")
-                _refuse_any_target({k: v for k, v in generator.items() if k != "params"}, f"{here}.generator")
+                check_stored_config({k: v for k, v in generator.items() if k != "params"}, "none", f"{here}.generator")
             else:
-                _refuse_any_target(generator, f"{here}.generator")
+                check_stored_config(generator, "none", f"{here}.generator")
         else:
-            _refuse_any_target(value, here)
-
-
-def _refuse_any_target(config: Any, where: str) -> None:
-    for path, value in _walk(config, where):
-        if isinstance(value, dict) and "_target_" in value:
-            raise UnsafeConfigError(f"{path}._target_: {str(value['_target_'])[:120]!r}: rgns builds nothing from "
-                                    "this entry of a stored config; refused")
-        if isinstance(value, str) and "${" in value:
-            raise UnsafeConfigError(f"{path}: holds an OmegaConf interpolation ({value[:80]!r}); refused")
+            check_stored_config(value, "none", here)
 
 
 def _walk(config: Any, path: str):

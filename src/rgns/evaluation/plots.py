@@ -33,7 +33,6 @@ from rgns.data.contract import KINEMATIC, atomic_path  # noqa: E402
 MARKERS = "osD^v<>P*X"
 PANELS_PER_ROW = 6  # an animation's grid: at most this many panels a row
 NUMBER_OFFSETS = ((14, 12), (14, -12), (-14, 12), (-14, -12), (0, 18), (0, -18))  # points: numbers of close points
-LINESTYLES = ("-", "--", "-.", ":")
 
 
 def write_whole(path, data: bytes) -> None:

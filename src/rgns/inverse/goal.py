@@ -63,7 +63,7 @@ from rgns.evaluation.metrics import chamfer, optimal_transport
 from rgns.evaluation.plots import save_figure, write_whole
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import dataset_spacing
-from rgns.inverse.tasks import _optimiser_simulator, _warm_up
+from rgns.inverse.tasks import _optimiser_simulator, _warm_up, add_out_arguments, refuse_earlier_out
 from rgns.models import State
 
 log = logging.getLogger(__name__)
@@ -618,12 +618,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--optimisers", nargs="*", default=["sph"], help="sph, mpm (none: no optimisation baseline)")
     parser.add_argument("--iterations", type=int, default=30, help="the stopping rule's iteration cap")
     parser.add_argument("--no-physics", action="store_true", help="skip the ground-truth solver's check")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--overwrite", action="store_true", help="write into an --out folder that holds files already")
+    add_out_arguments(parser)
     args = parser.parse_args(argv)
-    if Path(args.out).is_dir() and any(Path(args.out).iterdir()) and not args.overwrite:
-        parser.error(f"--out {args.out}: holds files already (an earlier run's results?); refused, so as not to write "
-                     "over them. Choose another folder, or add --overwrite")
+    refuse_earlier_out(parser, args)
     if min(args.steps) < 1 or args.iterations < 1:
         parser.error(f"--steps {' '.join(map(str, args.steps))} and --iterations {args.iterations}: each must be at least 1")
     if not set(args.optimisers) <= {"sph", "mpm"}:

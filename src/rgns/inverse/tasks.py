@@ -28,6 +28,7 @@ Entry points: :func:`compare_inverse` (in-memory trajectories), :func:`run_inver
 """
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import math
@@ -250,6 +251,20 @@ def long_rollout_stability(models: dict, trajectories, start: int, steps: int, d
     return out
 
 
+def add_out_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--out DIR`` (required) and ``--overwrite``, for :func:`refuse_earlier_out`."""
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--overwrite", action="store_true", help="write into an --out folder that holds files already")
+
+
+def refuse_earlier_out(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Exit 2 (``parser.error``) when ``--out`` holds files and ``--overwrite`` was not given."""
+    out = Path(args.out)
+    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
+        parser.error(f"--out {args.out}: holds files already (an earlier run's results?); refused, so as not to write "
+                     "over them. Choose another folder, or add --overwrite")
+
+
 def write_outputs(results: dict, out_dir: Path) -> None:
     """``inverse_comparison.json``, ``inverse_comparison.md`` (the table at the table horizon and the K
     sweep) and ``inverse_k_sweep.png`` (consistency MSE and seconds against K, per method)."""
@@ -359,8 +374,6 @@ class InverseComparison:
 
 def main(argv: list[str] | None = None) -> dict:
     """``python -m rgns.inverse.tasks --ckpt A.ckpt [--ckpt B.ckpt] --out DIR [--horizons 1 5 10 20 40]``"""
-    import argparse
-
     from rgns.evaluation.methods import check_fits, trained_on
     from rgns.training.module import load_simulator
 
@@ -379,12 +392,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--stability-steps", type=int, default=1000)
     parser.add_argument("--budget-iterations", type=int, default=0,
                         help="also time each optimiser for exactly this many iterations at the table horizon")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--overwrite", action="store_true", help="write into an --out folder that holds files already")
+    add_out_arguments(parser)
     args = parser.parse_args(argv)
-    if Path(args.out).is_dir() and any(Path(args.out).iterdir()) and not args.overwrite:
-        parser.error(f"--out {args.out}: holds files already (an earlier run's results?); refused, so as not to write "
-                     "over them. Choose another folder, or add --overwrite")
+    refuse_earlier_out(parser, args)
     if args.label and len(args.label) != len(args.ckpt):
         parser.error(f"{len(args.label)} --label for {len(args.ckpt)} --ckpt: give one label per checkpoint, or none")
     if min(args.horizons) < 1 or args.trajectories < 1 or args.iterations < 1:

@@ -7,8 +7,9 @@ small learning rate tend to stay in one basin, where their mean can score better
 average is only worth keeping where the scores say so (docs/recipe_study.md).
 
 ``OUT`` must not exist (``--overwrite`` to replace it) and is never one of the inputs: a
-forgotten output argument would otherwise write the mean over the first checkpoint. ``OUT`` loads wherever a trained checkpoint does (``evaluate.py ckpt_paths=[OUT]``,
-``init_from=OUT``); it holds no optimiser state, so it cannot be resumed. Every input must be an
+forgotten output argument would otherwise write the mean over the first checkpoint. ``OUT``
+loads wherever a trained checkpoint does (``evaluate.py ckpt_paths=[OUT]``, ``init_from=OUT``);
+it holds no optimiser state, so it cannot be resumed. Every input must be an
 rgns checkpoint of the same model (the same ``model`` config and the same parameter names and
 shapes); a mismatch is refused naming the file, and ``OUT`` is written whole or not at all.
 """

@@ -403,8 +403,7 @@ def warm_start(module: SimulatorModule, path: str, grow: bool = False) -> None:
     checkpoint's model computes; a model that adds no such layers is refused."""
     extras = _read_checkpoint(path, "checkpoint to start from (init_from)")
     state = extras["state_dict"]
-    trained = (extras.get("hyper_parameters") or {}).get("metadata")
-    differences = metadata_differences(trained, module.hparams["metadata"]) if isinstance(trained, dict) else []
+    differences = _data_differences(extras, module)
     if differences:  # a fine-tune on other data is a use of init_from=; said, not refused
         log.warning("%s: trained on other data than this run's: %s", path, "; ".join(differences))
     own = module.state_dict()
@@ -453,12 +452,18 @@ def check_resume(module: SimulatorModule, path: str) -> None:
     if misfits:
         raise CheckpointError(f"{path}: its weights do not fit this run's model ({', '.join(misfits[:3])}"
                               f"{', ...' if len(misfits) > 3 else ''})")
-    trained = hparams.get("metadata")
-    differences = metadata_differences(trained, module.hparams["metadata"]) if isinstance(trained, dict) else []
+    differences = _data_differences(extras, module)
     if differences:
         raise CheckpointError(f"{path}: trained on other data than this run's ({'; '.join(differences)}): resume= "
                               "continues a run on its own dataset; start a new run from its weights with init_from= "
                               "to train on this one")
+
+
+def _data_differences(extras: dict, module: SimulatorModule) -> list[str]:
+    """:func:`~rgns.data.contract.metadata_differences` between the metadata a checkpoint
+    (``extras``, as read) was trained with and the module's; none where it records none."""
+    trained = (extras.get("hyper_parameters") or {}).get("metadata")
+    return metadata_differences(trained, module.hparams["metadata"]) if isinstance(trained, dict) else []
 
 
 def _read_checkpoint(path: str, role: str) -> dict:

@@ -16,12 +16,13 @@ checkpoint callback's best validation, or ``last``). Each stage runs as
   stage started before (``stage.json``) that has ``checkpoints/last.ckpt`` but no ``done.json`` goes
   on from it (``resume=``). A folder whose stage ran with other overrides is refused, not mixed.
 - SIGINT / SIGTERM: train.py finishes its step and saves ``last.ckpt``; the same command goes on.
-- At the end the last stage's pick is copied to ``<out>/<model>.ckpt`` (through ``.partial`` and
-  ``os.replace``) with ``<model>.json``: the preset, each stage's overrides, pick, best validation
+- At the end the last stage's pick is copied to ``<out>/<model>.ckpt`` (through a temporary file
+  renamed into place) with ``<model>.json``: the preset, each stage's overrides, pick, best validation
   score and step, the commit, and no path of one machine (stages are named, not located).
   An existing ``<model>.ckpt`` with other contents is kept unless ``overwrite=true``.
 
-Checkpoints are read with ``torch.load(weights_only=True)`` only.
+Checkpoints are read with ``torch.load(weights_only=True)`` only, their configs checked against
+rgns's own targets (:mod:`rgns.targets`).
 """
 from __future__ import annotations
 
@@ -39,7 +40,8 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from rgns import config_dir
-from rgns.training.module import _read_plain
+from rgns.data.contract import atomic_path
+from rgns.training.module import _read_checkpoint
 
 OPTIONS = ("preset", "out", "run_dir", "overwrite", "seed")
 USAGE = ("usage: python -m rgns.training.stages BENCHMARK MODEL [seed=N] [out=DIR] [run_dir=DIR] "
@@ -135,9 +137,8 @@ def train_script() -> Path:
 
 
 def write_json(path: Path, payload: dict) -> None:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(payload, indent=2) + "\n")
-    os.replace(partial, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(payload, indent=2) + "\n")
 
 
 def read_json(path: Path) -> dict:
@@ -185,7 +186,7 @@ def stage_result(folder: Path, pick: str) -> dict:
     last = checkpoints / "last.ckpt"
     if not last.is_file():
         raise RecipeError(f"{folder}: train.py ended without {last}")
-    state = _read_plain(str(last))
+    state = _read_checkpoint(str(last), "stage checkpoint")
     monitored = [s for key, s in (state.get("callbacks") or {}).items()
                  if key.startswith("ModelCheckpoint") and isinstance(s, dict) and s.get("monitor")]
     best = next((s for s in monitored if s.get("best_model_path")), None)
@@ -197,7 +198,7 @@ def stage_result(folder: Path, pick: str) -> dict:
             name = Path(best["best_model_path"]).name
         else:
             say(f"{folder.name}: no best checkpoint recorded (no validation?): its last.ckpt goes on")
-    chosen = state if name == "last.ckpt" else _read_plain(str(checkpoints / name))
+    chosen = state if name == "last.ckpt" else _read_checkpoint(str(checkpoints / name), "stage checkpoint")
     return {"checkpoint": f"checkpoints/{name}", "global_step": int(chosen.get("global_step", 0)),
             "last_step": int(state.get("global_step", 0)),
             "monitor": best.get("monitor") if best else (monitored[0]["monitor"] if monitored else None),
@@ -306,9 +307,8 @@ def run_recipe(benchmark: str | None, model: str | None, options: dict, extras: 
         say(f"{final}: already this recipe's result; nothing to write")
         return 0
     out.mkdir(parents=True, exist_ok=True)
-    partial = final.with_name(final.name + ".partial")
-    shutil.copyfile(source, partial)
-    os.replace(partial, final)
+    with atomic_path(final) as tmp:
+        shutil.copyfile(source, tmp)
     head_commit, dirty = commit()
     user = [portable(e) for e in extras]
     builtin = search_root is None
