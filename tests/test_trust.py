@@ -207,9 +207,27 @@ def test_sigterm_to_an_evaluation_says_so_and_marks_its_folder_incomplete(traine
         time.sleep(0.05)
     process.send_signal(signal.SIGTERM)
     _, err = process.communicate(timeout=120)
-    assert process.returncode == 143
+    assert process.returncode == 143, err
     assert "evaluate.py stopped by SIGTERM" in err and str(folder) in err
     assert (folder / "INCOMPLETE").exists() and not (folder / "report.md").exists()
+
+
+@pytest.mark.parametrize("interrupted", ["swallowed", "turned into another error"])
+def test_a_signal_ends_its_block_as_stopped_whatever_the_interrupted_code_does(interrupted):
+    from rgns.runs import Stopped, signals_stop, stop_received
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Stopped) as stopped:
+        with signals_stop():
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)  # the handler raises here, in the interrupted code
+                time.sleep(5)
+            except BaseException:
+                assert stop_received() == signal.SIGTERM  # what the code inside asks before saying it finished
+                if interrupted != "swallowed":
+                    raise KeyError("half-changed state")
+    assert stopped.value.signum == signal.SIGTERM and stop_received() is None
+    assert signal.getsignal(signal.SIGTERM) is before  # the handler from before is back
 
 
 def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):

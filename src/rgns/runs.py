@@ -61,19 +61,40 @@ class Stopped(BaseException):
         self.signum = signum
 
 
+_received: list[int] = []  # the signal signals_stop caught, while within it
+
+
 @contextmanager
 def signals_stop() -> Iterator[None]:
     """Within: SIGTERM and SIGINT raise :class:`Stopped` in the main thread (the handlers from
-    before are restored after)."""
+    before are restored after). Raised at an arbitrary point, it can be turned into another
+    exception by the code it interrupts (a ``finally`` that fails on half-changed state) or
+    swallowed by it: whatever ends the block after a signal, the block raises :class:`Stopped`,
+    and :func:`stop_received` says so to the code inside, which must not report itself finished."""
     def handler(signum, frame):
-        raise Stopped(signum)
+        if not _received:
+            _received.append(signum)
+            raise Stopped(signum)
 
     previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         yield
+    except BaseException as err:
+        if _received and not isinstance(err, Stopped):
+            raise Stopped(_received[0]) from err
+        raise
+    else:
+        if _received:
+            raise Stopped(_received[0])
     finally:
+        _received.clear()
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+def stop_received() -> int | None:
+    """The signal :func:`signals_stop` has caught, if any (``None`` outside it)."""
+    return _received[0] if _received else None
 
 
 def _refusal(err: BaseException) -> BaseException | None:

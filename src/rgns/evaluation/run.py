@@ -19,6 +19,7 @@ from rgns.evaluation import plots, report
 from rgns.evaluation.methods import (build_baselines, check_fits, find_checkpoints, load_checkpoints, seed_groups,
                                      trained_on, without_hard_walls)
 from rgns.evaluation.tasks import Dataset
+from rgns.runs import stop_received
 
 log = logging.getLogger(__name__)
 INCOMPLETE = "INCOMPLETE"  # the marker file of an evaluation that has not finished
@@ -167,6 +168,7 @@ def evaluate(cfg: DictConfig) -> dict:
     plots.write_whole(out / "results.json", (json.dumps(results, indent=2) + "\n").encode())
     charts = plots.make_all(results, examples, out, cfg.animation)
     plots.write_whole(out / "report.md", report.render(results, charts).encode())
-    marker.unlink()
+    if stop_received() is None:  # after a signal nothing here can be trusted as whole (rgns.runs.signals_stop)
+        marker.unlink()
     log.info("wrote %s", out / "report.md")
     return results
