@@ -15,7 +15,7 @@ import torch
 import yaml
 
 from rgns.runs import claim_run_dir
-from rgns.training.checkpointing import AtomicCheckpointIO
+from rgns.training.checkpointing import AtomicCheckpointIO, LastCheckpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["model.latent=16", "model.layers=2", "trainer=cpu", "trainer.log_every_n_steps=1",
@@ -84,6 +84,35 @@ def test_a_signal_stops_at_a_step_saves_and_fails(dataset, tmp_path, signum):
                                      f"hydra.run.dir={tmp_path / 'resumed'}"))
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert step_of(tmp_path / "resumed" / "checkpoints" / "last.ckpt") == step + 3
+
+
+def test_a_kill_no_process_can_catch_loses_at_most_the_last_minutes(dataset, tmp_path):
+    """SIGKILL (the machine taken away) leaves the last timed save: with every_minutes tiny,
+    last.ckpt appears during training, whole, at a step where the ranks look at the clock."""
+    run_dir = tmp_path / "run"
+    last = run_dir / "checkpoints" / "last.ckpt"
+    process = subprocess.Popen(
+        command(dataset, "data.num_workers=0", "trainer.max_steps=1000000", "callbacks.last.every_minutes=0.001",
+                f"hydra.run.dir={run_dir}"),
+        cwd=tmp_path, env=dict(os.environ, OMP_NUM_THREADS="1"), stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not last.exists() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert last.exists(), "no timed save of last.ckpt"
+        time.sleep(1.0)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait(timeout=60)
+    step = step_of(last)
+    assert step > 0 and step % LastCheckpoint.CLOCK_EVERY == 0
+    assert not list(last.parent.glob("*.partial"))
+
+
+def test_last_checkpoint_refuses_a_period_that_is_not_positive():
+    with pytest.raises(ValueError, match="every_minutes"):
+        LastCheckpoint(every_minutes=0)
 
 
 def test_runs_started_together_get_folders_of_their_own(dataset, tmp_path):

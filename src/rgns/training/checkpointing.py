@@ -5,8 +5,9 @@ killing it mid-step.
 - :class:`AtomicCheckpointIO` writes each checkpoint to ``<name>.partial`` and renames it into
   place: a kill during the write leaves the previous file as it was.
 - :class:`LastCheckpoint` is ``last.ckpt``: written at every validation (like a
-  ``ModelCheckpoint`` without a monitor) and again when training ends, whatever ended it (max
-  steps, max time, early stopping, a signal), so the latest state is never lost.
+  ``ModelCheckpoint`` without a monitor), every ``every_minutes`` of training (10 by default: a
+  kill no process can catch loses at most that), and again when training ends, whatever ended it
+  (max steps, max time, early stopping, a signal), so the latest state is never lost.
 - :class:`StopOnSignal` turns SIGINT and SIGTERM into a stop after the running step; the ranks of a
   DDP run agree on the step. ``train.py`` then says where the checkpoint is and exits with
   ``128 + signal`` (130, 143), as a process killed by it would, so a scheduler sees the failure.
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from pathlib import Path
 
 import lightning as L
@@ -47,9 +49,36 @@ class LastCheckpoint(ModelCheckpoint):
     state it stopped in is not one to resume from.
     """
 
-    def __init__(self, dirpath: str | None = None, filename: str = "last"):
+    #: steps between two looks at the clock (the same steps on every rank)
+    CLOCK_EVERY = 20
+
+    def __init__(self, dirpath: str | None = None, filename: str = "last",
+                 every_minutes: float | None = 10.0):
         super().__init__(dirpath=dirpath, filename=filename, monitor=None, save_top_k=1,
                          enable_version_counter=False)
+        if every_minutes is not None and every_minutes <= 0:
+            raise ValueError(f"callbacks.last.every_minutes must be positive or null, got {every_minutes}")
+        self.every_minutes = every_minutes
+        self._saved_at = time.monotonic()
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_train_start(trainer, pl_module)
+        self._saved_at = time.monotonic()
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs, batch,
+                           batch_idx: int) -> None:
+        """Also save every ``every_minutes`` of training, so that a run killed without a signal it
+        can catch (the machine taken away) loses at most that much; rank 0's clock decides."""
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+        if self.every_minutes is None or trainer.global_step % self.CLOCK_EVERY:
+            return
+        due = time.monotonic() - self._saved_at >= 60.0 * self.every_minutes
+        if trainer.strategy.broadcast(due) and self._last_global_step_saved != trainer.global_step:
+            self._save_checkpoint(trainer, self.path(trainer))
+
+    def _save_checkpoint(self, trainer: L.Trainer, filepath: str) -> None:
+        super()._save_checkpoint(trainer, filepath)
+        self._saved_at = time.monotonic()
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_end(trainer, pl_module)
