@@ -103,14 +103,33 @@ def _array(values) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values], dtype=float)
 
 
+def ms_per_frame(row: dict) -> float | None:
+    """A method's forward cost per frame: ``forward_ms_per_frame`` where the evaluation recorded
+    it (a stride-k model's step over k), else its ms per step (a stride-1 model, a solver's frame)."""
+    value = row.get("forward_ms_per_frame")
+    return row.get("forward_ms_per_step") if value is None else value
+
+
+def pareto_front(points: list[tuple]) -> list[tuple]:
+    """The points ``(cost, error, *anything)`` that no point of lower or equal cost beats in
+    error, cheapest first."""
+    kept, best = [], math.inf
+    for point in sorted(points, key=lambda p: (p[0], p[1])):
+        if point[1] < best:
+            kept.append(point)
+            best = point[1]
+    return kept
+
+
 def accuracy_vs_speed(results: dict, path: Path) -> bool:
-    """Rollout MSE against ms per step: each learned method a circle (area by parameters; its
-    no-hard-walls twin hollow, in its colour) numbered on the chart and named in the legend beside
-    it, so that no label lies over another; solvers as stars joined into the classical front; the
-    predictability floor as a dotted line."""
+    """Rollout MSE against ms per frame (a learned step over k frames, ``data.stride``, counts
+    as k frames): each learned method a circle (area by parameters; its no-hard-walls twin hollow,
+    in its colour) numbered on the chart and named in the legend beside it, so that no label lies
+    over another; solvers as stars joined into the classical front; the learned front (the
+    learned methods no cheaper one beats) as a solid line; the predictability floor dotted."""
     colours = _colours(results)
     points = [(name, label, row) for name, d in results["datasets"].items() for label, row in d["summary"].items()
-              if row.get("rollout_mse") is not None and row.get("forward_ms_per_step") is not None]
+              if row.get("rollout_mse") is not None and ms_per_frame(row) is not None]
     if not points:
         return False
     largest = max(row["parameters"] for _, _, row in points) or 1
@@ -121,7 +140,7 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
     for name, label, row in sorted(points, key=lambda p: (datasets.index(p[0]), order.index(p[1]))):
         solvers = results["datasets"][name].get("references", {}).get("methods", {})
         legend = f"{label} ({name})" if len(datasets) > 1 else label
-        x, y = row["forward_ms_per_step"], row["rollout_mse"]
+        x, y = ms_per_frame(row), row["rollout_mse"]
         if label in solvers:  # a classical solver: a star
             ax.scatter(x, y, s=160, color=colours[label], marker="*", edgecolors="black", linewidths=0.6,
                        label=f"{legend} (solver, ms / frame)", zorder=3)
@@ -144,11 +163,16 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
                     arrowprops=dict(arrowstyle="-", lw=0.5, color="0.3") if clash else None)
     for name, d in results["datasets"].items():  # each dataset's classical front, and its floor
         solvers = d.get("references", {}).get("methods", {})
-        front = sorted((row["forward_ms_per_step"], row["rollout_mse"]) for n, label, row in points
+        front = sorted((ms_per_frame(row), row["rollout_mse"]) for n, label, row in points
                        if n == name and label in solvers)
         if len(front) > 1:
             ax.plot(*zip(*front), color="0.35", linestyle="--", linewidth=1, zorder=2,
                     label="classical solver front" + (f" ({name})" if len(datasets) > 1 else ""))
+        learned = pareto_front([(ms_per_frame(row), row["rollout_mse"]) for n, label, row in points
+                                if n == name and label not in solvers])
+        if len(learned) > 1:
+            ax.plot(*zip(*learned), color="0.1", linestyle="-", linewidth=1.2, zorder=2,
+                    label="learned front" + (f" ({name})" if len(datasets) > 1 else ""))
         for label, info in solvers.items():
             mse = d["summary"].get(label, {}).get("rollout_mse")
             if info.get("perturbation") and mse is not None:
@@ -156,7 +180,7 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
                            label=f"predictability floor ({label}" + (f", {name})" if len(datasets) > 1 else ")"))
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("forward inference time (ms / step, median, radius graph included; solvers: ms / frame)")
+    ax.set_xlabel("forward inference time (ms / frame; learned: median step, radius graph included, over its stride)")
     ax.set_ylabel("rollout MSE (position units²)")
     ax.set_title("Accuracy against speed (lower left is better; area ∝ parameters; hollow: without hard walls)",
                  fontsize=10)
