@@ -34,20 +34,24 @@ def test_cost_at_interpolates_log_log_and_bounds_beyond_the_ends():
         cost_at([], 1e-3)
 
 
-def row(ms, mse, learned, **settings):
-    return dict(ms_per_frame=ms, rollout_mse=mse, learned=learned, source="x", settings=settings or None)
+def row(ms, mse, learned, parameters=0, **settings):
+    return dict(ms_per_frame=ms, rollout_mse=mse, learned=learned, source="x", parameters=parameters,
+                settings=settings or None)
 
 
 def test_analyse_finds_the_half_resolution_solver_the_fastest_good_model_and_the_front():
     rows = {"MPM 32": row(0.5, 4e-4, False, n_grid=32, stored_n_grid=64, perturbation=None),
             "MPM 48": row(0.8, 1e-4, False, n_grid=48, stored_n_grid=64, perturbation=None),
             "floor": row(1.0, 1e-8, False, n_grid=64, stored_n_grid=64, perturbation=1e-4),
-            "big": row(40.0, 3e-4, True), "small": row(8.0, 4e-4, True), "fast bad": row(0.2, 5e-3, True)}
+            "big": row(40.0, 3e-4, True, 9000), "small": row(8.0, 4e-4, True, 2000),
+            "fast bad": row(0.2, 5e-3, True, 100)}
     analysis = analyse(rows, "big")
     marks = analysis["marks"]
     assert marks["half_resolution"] == "MPM 32" and marks["fastest_at_most_half_resolution_mse"] == "small"
     assert marks["reference_over_fastest"] == pytest.approx(5.0) and marks["on_solver_front"] == []
     assert analysis["learned_front"] == ["fast bad", "small", "big"]
+    assert analysis["smallest_within"] == "small"  # 4e-4 is within 1.5x of 3e-4; 5e-3 is not
+    assert analyse(rows, "big", within=1.2)["smallest_within"] == "big"
     assert analysis["solver_front"] == ["MPM 32", "MPM 48", "floor"]
     assert analysis["against_solver"]["fast bad"]["relation"] == "<"
     big = analysis["against_solver"]["big"]

@@ -1,6 +1,6 @@
 """Accuracy against cost, learned models and the dataset's solver side by side:
 ``python -m rgns.bench front [--checkpoints A B ...] [--data-root DIR] [--trajectories N] [--steps S]
-[--resolutions F ...] [--reference CKPT] [--json PATH]``.
+[--resolutions F ...] [--reference CKPT] [--within F] [--json PATH]``.
 
 Every method rolls out the same test trajectories of one dataset in one process on one thread,
 in turns (trajectory by trajectory, every method on each before the next), so that a drift in the
@@ -20,7 +20,9 @@ that no cheaper one of their kind beats), each learned model's cost against the 
 same accuracy (interpolated log-log along the solver's front; beyond its ends a bound), and the
 issue's two marks: the fastest learned model at most the half-resolution solver's error against
 ``--reference`` (the shipped R-GNS by default), and whether any learned model sits on the
-solver's front (at most the half-resolution solver's error in at most its time per frame).
+solver's front (at most the half-resolution solver's error in at most its time per frame); and the
+model a scene needs: the smallest learned model (parameters) within ``--within`` times the best
+learned rollout MSE (pass a size sweep's checkpoints).
 """
 from __future__ import annotations
 
@@ -82,14 +84,16 @@ def measure(methods: list, dataset: Dataset, steps: int, log=print) -> dict[str,
         log(f"trajectory {i + 1}/{len(dataset.trajectories)} done", flush=True)
     return {m.label: dict(rollout_mse=sum(errors[m.label]) / len(errors[m.label]),
                           ms_per_frame=1e3 * seconds[m.label] / frames[m.label],
-                          learned=m.model is not None,
+                          learned=m.model is not None, parameters=m.parameters if m.model is not None else 0,
                           source=m.source if m.model is not None else "solver",
                           settings=getattr(m, "settings", None))
             for m in methods}
 
 
-def analyse(rows: dict[str, dict], reference: str | None) -> dict:
-    """The fronts, each learned model against the solver at its accuracy, and the two marks."""
+def analyse(rows: dict[str, dict], reference: str | None, within: float = 1.5) -> dict:
+    """The fronts, each learned model against the solver at its accuracy, the two marks, and the
+    smallest learned model (parameters, then ms per frame) within ``within`` times the best
+    learned rollout MSE: the model a scene needs."""
     learned = [(r["ms_per_frame"], r["rollout_mse"], k) for k, r in rows.items() if r["learned"]]
     solvers = [(r["ms_per_frame"], r["rollout_mse"], k) for k, r in rows.items() if not r["learned"]]
     solver_front, learned_front = pareto_front(solvers), pareto_front(learned)
@@ -112,8 +116,11 @@ def analyse(rows: dict[str, dict], reference: str | None) -> dict:
         if fastest is not None and reference in rows:
             marks["reference"] = reference
             marks["reference_over_fastest"] = rows[reference]["ms_per_frame"] / fastest[1]
+    best = min((mse for _, mse, _ in learned), default=None)
+    close = [k for _, mse, k in learned if mse <= within * best] if best is not None else []
+    smallest = min(close, key=lambda k: (rows[k].get("parameters") or 0, rows[k]["ms_per_frame"]), default=None)
     return dict(solver_front=[p[2] for p in solver_front], learned_front=[p[2] for p in learned_front],
-                against_solver=against, marks=marks)
+                against_solver=against, marks=marks, within=within, smallest_within=smallest)
 
 
 def report(rows: dict[str, dict], analysis: dict) -> str:
@@ -130,6 +137,10 @@ def report(rows: dict[str, dict], analysis: dict) -> str:
             ratio = {"=": "", ">": "at most ", "<": "at least "}[a["relation"]]
             line += f" {relation}{a['solver_ms_at_same_mse']:.2f} ({ratio}{a['ratio']:.1f}x the solver's time)"
         lines.append(line)
+    if analysis.get("smallest_within"):
+        k = analysis["smallest_within"]
+        lines.append(f"smallest learned model within {analysis['within']:g}x of the best learned rollout MSE: {k} "
+                     f"({rows[k].get('parameters') or 0:,} parameters, {rows[k]['ms_per_frame']:.2f} ms/frame)")
     marks = analysis["marks"]
     if not marks:
         lines.append("no half-resolution solver reference: the marks need one")
@@ -164,6 +175,8 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--floor", type=float, default=1e-4, help="the floor's perturbation, m (0: no floor)")
     parser.add_argument("--reference", default="pretrained/waterdrop40_main_64/rgns.ckpt",
                         help="the checkpoint the fastest good model is compared with")
+    parser.add_argument("--within", type=float, default=1.5,
+                        help="report the smallest model within this factor of the best learned rollout MSE")
     parser.add_argument("--json", default=None, help="also write the rows and the analysis here")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -182,7 +195,7 @@ def main(argv: list[str]) -> None:
     print(f"{len(methods)} checkpoints and {len(references)} solver runs, {len(dataset.trajectories)} trajectories x "
           f"{args.steps} steps from frame {dataset.start}, one thread", flush=True)
     rows = measure(methods + references, dataset, args.steps)
-    analysis = analyse(rows, reference)
+    analysis = analyse(rows, reference, args.within)
     print(report(rows, analysis))
     if args.json:
         write_whole(args.json, json.dumps(dict(rows=rows, analysis=analysis, data_root=args.data_root,
