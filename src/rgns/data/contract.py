@@ -351,11 +351,15 @@ EXACT_TOLERANCE = 1e-6  # relative, for the radius, dt and bounds
 
 def metadata_differences(trained: dict, data: dict) -> list[str]:
     """What differs between the metadata a model was trained with (``trained``) and the data's:
-    ``dim``, ``default_connectivity_radius``, ``dt`` and ``bounds`` beyond rounding
-    (:data:`EXACT_TOLERANCE`), and the velocity and acceleration means and stds by more than
-    :data:`STATS_TOLERANCE` of the trained std. One sentence per key, naming it; empty when
-    they agree. A key missing on either side is not compared."""
+    ``dim``, ``stride`` (1 where absent: every frame), ``default_connectivity_radius``, ``dt`` and
+    ``bounds`` beyond rounding (:data:`EXACT_TOLERANCE`), and the velocity and acceleration means
+    and stds by more than :data:`STATS_TOLERANCE` of the trained std. One sentence per key, naming
+    it; empty when they agree. A key missing on either side is not compared. A model trained on
+    every k-th frame is compared with the data at that stride
+    (:func:`rgns.data.datamodule.at_stride`), not with its ``metadata.json``."""
     differences = []
+    if int(trained.get("stride") or 1) != int(data.get("stride") or 1):
+        differences.append(f"'stride' {trained.get('stride') or 1} (trained) against {data.get('stride') or 1}")
 
     def present(key):
         return trained.get(key) is not None and data.get(key) is not None

@@ -11,9 +11,29 @@ from torch.utils.data import Sampler, Subset
 from torch_geometric.loader import DataLoader
 
 from rgns.data.contract import Contents, DatasetError, check_dataset, open_split
-from rgns.data.windows import TrajectoryDataset, WindowDataset
+from rgns.data.stats import compute_statistics
+from rgns.data.windows import StridedSplit, TrajectoryDataset, WindowDataset
+from rgns.errors import ConfigError
 
 log = logging.getLogger(__name__)
+
+
+STRIDED_STATISTICS = ("vel_mean", "vel_std", "acc_mean", "acc_std")
+
+
+def at_stride(metadata: dict, stride: int, statistics: dict | None = None) -> dict:
+    """A dataset's metadata for every ``stride``-th frame of its trajectories: ``dt`` times the
+    stride, ``stride``, ``sequence_length`` (frames - 1) of phase 0, and the velocity and
+    acceleration ``statistics`` of the strided train split
+    (:func:`~rgns.data.stats.compute_statistics` of a :class:`~rgns.data.windows.StridedSplit`),
+    or, without them, no statistics at all: they do not follow from the stride-1 ones. The
+    metadata itself at stride 1."""
+    if stride == 1:
+        return metadata
+    strided = {key: value for key, value in metadata.items() if key not in STRIDED_STATISTICS}
+    strided.update(statistics or {}, dt=metadata["dt"] * stride, stride=stride,
+                   sequence_length=metadata["sequence_length"] // stride)
+    return strided
 
 
 class ResumableOrder(Sampler[int]):
@@ -102,6 +122,15 @@ class ParticleDataModule(L.LightningDataModule):
             :class:`~rgns.data.windows.WindowDataset`).
         position_correction, position_noise, noise_low: variants of the training noise (see
             :class:`~rgns.data.windows.WindowDataset`; 0, 1 and 1: GNS's).
+        stride: k, train and validate on every k-th frame: one step of the model is k frames of
+            the data. Each trajectory is cut into its k phases (frames ``r, r+k, r+2k, ...`` for
+            ``r = 0 .. k-1``, :class:`~rgns.data.windows.StridedSplit`), so every frame is used and
+            no window is thrown away; windows, validation rollouts and statistics are taken on
+            those. :attr:`metadata` (what the model is built from, and its checkpoint records) is
+            the strided data's: ``dt`` times k, ``stride: k``, ``sequence_length`` of phase 0, and
+            ``vel_mean``/``vel_std``/``acc_mean``/``acc_std`` of the strided train split
+            (velocities ``p^{t+k} - p^t``). Every phase must hold a training window; 1 (the default)
+            is the data as it is.
     """
 
     def __init__(
@@ -120,8 +149,12 @@ class ParticleDataModule(L.LightningDataModule):
         position_noise: float = 1.0,
         noise_low: float = 1.0,
         early_windows: bool = False,
+        stride: int = 1,
     ):
         super().__init__()
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ConfigError(f"data.stride={stride!r}: must be an integer >= 1 (train on every k-th frame; "
+                              "1: every frame)")
         if isinstance(history, bool) or not isinstance(history, int) or history < 1:
             raise ValueError(f"history={history!r}: a state needs at least one velocity (k >= 1; GNS uses 5)")
         if not noise_std >= 0:  # also refuses NaN
@@ -137,7 +170,9 @@ class ParticleDataModule(L.LightningDataModule):
         self.cache_mb = cache_mb
         self.position_correction, self.position_noise = position_correction, position_noise
         self.noise_low = noise_low
+        self.stride = stride
         self._contents: Contents | None = None
+        self._metadata: dict | None = None
 
     def prepare_data(self) -> None:
         if not (self.root / "metadata.json").is_file():
@@ -163,28 +198,54 @@ class ParticleDataModule(L.LightningDataModule):
             # a training window spans lead + k + 1 + horizon frames (early windows fill in the lead),
             # a validation window k + 2
             lead = 0 if self.early_windows else self.lead
-            contents = check_dataset(self.root, min_frames={"train": lead + k + 1 + self.horizon, "valid": k + 2})
+            window = {"train": lead + k + 1 + self.horizon, "valid": k + 2}
+            contents = check_dataset(self.root, min_frames=window)
             if not contents.shapes["train"]:
                 raise DatasetError(f"{self.root / 'train.h5'}: no trajectories; nothing to train on")
+            self._check_stride(contents, window)
             if not contents.shapes["valid"]:
                 log.warning("%s: no trajectories: training runs without validation (no val/ metrics, no best "
                             "checkpoint)", self.root / "valid.h5")
             self._contents = contents
         return self._contents
 
+    def _check_stride(self, contents: Contents, window: dict[str, int]) -> None:
+        """Every phase of every trajectory at ``stride`` holds a window: its shortest phase has
+        ``T // stride`` frames."""
+        if self.stride == 1:
+            return
+        for split, frames_needed in window.items():
+            for i, (frames, _, _) in enumerate(contents.shapes[split]):
+                if frames // self.stride < frames_needed:
+                    raise DatasetError(
+                        f"{self.root / f'{split}.h5'}, trajectory {i:05d}: data.stride={self.stride} leaves "
+                        f"{frames // self.stride} frames of its {frames} in its shortest phase, fewer than the "
+                        f"{frames_needed} a {split} window needs; use a smaller data.stride (at most "
+                        f"{max(frames // frames_needed, 1)}) or longer trajectories")
+
     @property
     def metadata(self) -> dict:
         """``metadata.json`` plus ``particle_types``, those of the train split: a model built from it
-        (and its checkpoint) knows which types it was trained on."""
-        contents = self.check()
-        return dict(contents.metadata, particle_types=contents.particle_types["train"])
+        (and its checkpoint) knows which types it was trained on. With a stride, the strided data's
+        (see the class docs): ``dt``, ``stride``, ``sequence_length`` and the statistics."""
+        if self._metadata is None:
+            contents = self.check()
+            metadata = dict(contents.metadata, particle_types=contents.particle_types["train"])
+            if self.stride > 1:
+                with open_split(self.root, "train") as train:
+                    statistics = compute_statistics(StridedSplit(train, self.stride))
+                metadata = at_stride(metadata, self.stride, statistics)
+            self._metadata = metadata
+        return dict(self._metadata)
 
     @property
     def radius(self) -> float:
         return float(self.metadata["default_connectivity_radius"])
 
     def split(self, name: str):
-        return open_split(self.root, name, min_frames=self.history + 2)
+        """One split, every ``stride``-th frame (:class:`~rgns.data.windows.StridedSplit`) when strided."""
+        split = open_split(self.root, name, min_frames=self.history + 2)
+        return split if self.stride == 1 else StridedSplit(split, self.stride)
 
     def setup(self, stage: str | None = None) -> None:
         self.check()

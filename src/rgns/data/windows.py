@@ -17,11 +17,12 @@ noise, several times ``noise_std``, from velocities that do not reveal it.)
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch.utils.data import Dataset
 from torch_geometric.data import Data
 
-from rgns.data.contract import KINEMATIC, Split
+from rgns.data.contract import KINEMATIC, Split, Trajectory
 from rgns.data.graph import radius_graph
 
 
@@ -69,7 +70,7 @@ class WindowDataset(Dataset):
     pushforward how far back it may start.
 
     Args:
-        split: an open :class:`~rgns.data.contract.Split`.
+        split: an open :class:`~rgns.data.contract.Split` (or its :class:`StridedSplit`).
         radius: connectivity radius.
         history: k, the number of velocities in a history.
         noise_std: GNS random-walk noise std (0 for validation).
@@ -167,10 +168,43 @@ class WindowDataset(Dataset):
         )
 
 
+class StridedSplit:
+    """Every ``stride``-th frame of each trajectory of a split, one trajectory per phase: the
+    trajectory ``p^0, p^1, ...`` of ``T`` frames becomes ``p^r, p^{r+k}, p^{r+2k}, ...`` for each
+    phase ``r = 0 .. k-1``, so every frame is in one of them and no window of the data is thrown
+    away. Read like a :class:`~rgns.data.contract.Split` (``shapes``, ``len``, indexing,
+    iteration) by :class:`WindowDataset`, :class:`TrajectoryDataset` and
+    :func:`~rgns.data.stats.compute_statistics`. Trajectories are ordered phase first
+    (``index = phase * len(split) + trajectory``), so the first few are phase 0 of different
+    trajectories. A stride of 1 is the split itself, in its order.
+
+    Shapes:
+        one trajectory: ``[T, N, D]``  ->  its phase ``r``: ``[len(range(r, T, k)), N, D]``
+    """
+
+    def __init__(self, split: Split, stride: int):
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ValueError(f"stride={stride!r}: every k-th frame needs an integer k >= 1")
+        self.split, self.stride = split, stride
+        self.shapes = [(len(range(phase, frames, stride)), particles, dim)
+                       for phase in range(stride) for frames, particles, dim in split.shapes]
+
+    def __len__(self) -> int:
+        return len(self.shapes)
+
+    def __getitem__(self, index: int) -> Trajectory:
+        phase, s = divmod(index, len(self.split))
+        position, particle_type = self.split[s]
+        return Trajectory(np.ascontiguousarray(position[phase :: self.stride]), particle_type)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+
 class TrajectoryDataset(Dataset):
     """Whole trajectories for rollouts: ``Data(position [T, N, D], particle_type [N])``."""
 
-    def __init__(self, split: Split):
+    def __init__(self, split: Split | StridedSplit):
         self.split = split
 
     def __len__(self) -> int:

@@ -3,8 +3,9 @@ folder, e.g. a Hydra multirun) and training-free baselines, each with a label li
 ("R-GNS 128x10", "R-GNS† 128x10", "GNS 128x10", "Sep-GNS 128x10"; a baseline's own ``label``).
 
 What the tasks use of a method: ``label``, ``trained``, ``bidirectional``, ``parameters``,
-``model`` (a :class:`~rgns.models.Simulator`) and :meth:`Method.forward_rollout`. The solver
-references (:mod:`rgns.evaluation.references`) offer the same, with ``model = None``."""
+``stride``, ``model`` (a :class:`~rgns.models.Simulator`) and :meth:`Method.forward_rollout`. The
+solver references (:mod:`rgns.evaluation.references`) offer the same, with ``model = None``
+(``stride`` absent: 1)."""
 from __future__ import annotations
 
 import argparse
@@ -19,6 +20,7 @@ from torch import Tensor
 
 from rgns.models import RGNS, Simulator, count_parameters
 from rgns.training.module import CheckpointError, load_simulator
+from rgns.errors import ConfigError
 from rgns.training.rollouts import forward_rollout
 
 log = logging.getLogger(__name__)
@@ -46,11 +48,30 @@ class Method:
     def bidirectional(self) -> bool:
         return self.model.bidirectional
 
+    @property
+    def stride(self) -> int:
+        """Frames per step of the model: the ``stride`` of the data it was trained on (its
+        checkpoint's metadata, ``data.stride``); 1 for baselines and checkpoints without one."""
+        return int((self.trained_metadata or {}).get("stride", 1))
+
+    def first_frame(self) -> int:
+        """The earliest frame a rollout can start from: its history, ``stride`` frames apart."""
+        return self.stride * self.model.history
+
+    def check_start(self, start: int) -> None:
+        """Refuse a rollout start too early for the model's history (:class:`~rgns.errors.ConfigError`
+        naming the method and the start it needs)."""
+        if start < self.first_frame():
+            raise ConfigError(f"start={start}: {self.label} ({self.source}) steps {self.stride} frames at a time with "
+                              f"{self.model.history} velocities of history, so it needs start >= {self.first_frame()}")
+
     def forward_rollout(self, dataset, index: int, steps: int) -> Tensor:
         """Frames ``t0 + 1 .. t0 + steps`` of test trajectory ``index``, rolled out from its true
-        state at ``t0 = dataset.start``.  ``[steps, N, D]``"""
+        state at ``t0 = dataset.start``; a strided model's in steps of ``stride`` frames, the
+        frames between them filled in (:func:`~rgns.training.rollouts.forward_rollout`).  ``[steps, N, D]``"""
+        self.check_start(dataset.start)
         position, particle_type = dataset.trajectories[index]
-        return forward_rollout(self.model, position, particle_type, dataset.start, steps)
+        return forward_rollout(self.model, position, particle_type, dataset.start, steps, self.stride)
 
 
 def find_checkpoints(ckpt_path: str | None = None, ckpt_paths=(), checkpoints_dir: str | None = None,

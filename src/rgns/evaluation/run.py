@@ -15,6 +15,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from rgns.data.contract import DatasetError, metadata_differences
+from rgns.data.datamodule import at_stride
 from rgns.evaluation import plots, report
 from rgns.evaluation.methods import (build_baselines, check_fits, find_checkpoints, load_checkpoints, seed_groups,
                                      trained_on, without_hard_walls)
@@ -35,10 +36,13 @@ def summarise(sections: dict) -> dict:
         row = {}
         if label in forward:
             row.update(rollout_mse=forward[label]["rollout_mse"], stable_steps=forward[label]["stable_steps"],
-                       diverged=forward[label]["diverged"])
+                       diverged=forward[label]["diverged"], stride=forward[label].get("stride", 1),
+                       rollout_mse_shared=forward[label].get("rollout_mse_shared"))
         if label in efficiency:
             cost = efficiency[label]
             row.update(parameters=cost["parameters"], forward_ms_per_step=cost["forward_ms_per_step"],
+                       forward_ms_per_frame=cost.get("forward_ms_per_frame", cost["forward_ms_per_step"]),
+                       stride=cost.get("stride", 1),
                        inverse_ms_per_step=cost.get("inverse_ms_per_step"), memory_mb=cost["forward_memory_mb"])
         if label in inverse:
             at = inverse[label]["horizons"][str(table_horizon)]
@@ -114,16 +118,21 @@ def evaluate(cfg: DictConfig) -> dict:
     warnings: list[str] = []  # checkpoints scored on data other than their own: results.json and report.md
     datasets = {}  # every dataset checked, and every checkpoint against its dataset, before any task runs
     for root, trained in by_root.items():
-        history = max(m.model.history for m in trained)  # t0 leaves every model its history
+        if cfg.start is not None:  # a start too early for a model's history (strided: k frames a velocity) is named
+            for method in trained:
+                method.check_start(cfg.start)
+        history = max(m.first_frame() for m in trained)  # t0 leaves every model its history, at its stride
         dataset = datasets[root] = Dataset.load(root, cfg.split, cfg.trajectories, history, cfg.start, cfg.device)
         where = str(Path(root) / f"{cfg.split}.h5")
         short = [i for i, (position, _) in enumerate(dataset.trajectories) if len(position) < dataset.start + 2]
         if short:
             raise DatasetError(f"{where}: trajectories {short} have no frame after t0 = {dataset.start} (start, at "
-                               f"least k = {history}) to roll out to")
+                               f"least the {history} frames of history) to roll out to")
         for method in trained:
             check_fits(method.model, method.source, dataset.metadata, dataset.particle_types, where)
-            differences = metadata_differences(method.trained_metadata or {}, dataset.metadata)
+            # a strided model against the data at its stride: dt times the stride; the statistics at that
+            # stride are not in metadata.json (they need a pass over the train split), so not compared
+            differences = metadata_differences(method.trained_metadata or {}, at_stride(dataset.metadata, method.stride))
             if differences:  # scored all the same (a generalisation test), but never silently
                 warnings.append(f"{method.source}: trained on other data than {where}: {'; '.join(differences)}")
                 log.warning("%s", warnings[-1])

@@ -4,12 +4,15 @@ one dataset with the methods to compare: ``task(methods, dataset) -> (results, e
 ``examples`` are the frames of the first trajectory that the animations show.
 
 - :class:`ForwardRollout`: rollout MSE as GNS defines it, MSE per step, OT and MMD at chosen
-  steps, and how many steps each rollout stays stable;
+  steps, and how many steps each rollout stays stable;  a model trained on every k-th frame
+  (``stride``, :attr:`~rgns.evaluation.methods.Method.stride`) is scored on every frame, those
+  between its steps filled in (:func:`~rgns.training.rollouts.forward_rollout`), and every method
+  also on the frames all of them predict themselves (``rollout_mse_shared``);
 - :class:`InverseConsistency`: for each horizon K, K inverse steps back from the true state at
   ``t0 + K`` (inverse MSE against the truth at ``t0``), then K forward steps (consistency MSE
   against the truth at ``t0 + K``); max stable steps;
-- :class:`Efficiency`: ms per forward and inverse step (warm, median), peak memory of a step,
-  parameters.
+- :class:`Efficiency`: ms per forward and inverse step (warm, median), and per frame (a step of a
+  stride-k model covers k frames), peak memory of a step, parameters.
 
 A new task is a class with a ``name`` and that call, a ``conf/task/<name>.yaml`` (``task=all``
 lists the files it composes), and its tables in :mod:`rgns.evaluation.report`. A task that also
@@ -40,7 +43,7 @@ from rgns.data.contract import KINEMATIC, DatasetError, check_dataset, open_spli
 from rgns.evaluation.metrics import (density_ratio, divergence_step, mmd, mse_per_step, optimal_transport,
                                     reference_speed, with_last)
 from rgns.models import State
-from rgns.training.rollouts import inverse_then_forward
+from rgns.training.rollouts import strided_inverse_then_forward
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +92,17 @@ def finite(value) -> float | None:
 def mean_or_none(values) -> float | None:
     values = list(values)
     return None if not values or any(v is None for v in values) else float(np.mean(values))
+
+
+def stride_of(method) -> int:
+    """Frames per step of a method: its model's training stride (solver references: 1)."""
+    return getattr(method, "stride", 1)
+
+
+def shared_stride(methods) -> int:
+    """The frames every method predicts itself are the multiples (after t0) of this: the least
+    common multiple of their strides (the largest stride when each divides the next)."""
+    return math.lcm(*(stride_of(m) for m in methods)) if methods else 1
 
 
 def progress(total: int, desc: str) -> tqdm:
@@ -215,8 +229,8 @@ class ForwardRollout:
     """Forward rollouts from frame t0 on each test trajectory.
 
     Args:
-        steps: rollout length (the paper: 300); ``None`` rolls out to the end of each trajectory;
-            always capped by the trajectory's length.
+        steps: rollout length (the paper: 300) in frames of the data, whatever a method's stride;
+            ``None`` rolls out to the end of each trajectory; always capped by the trajectory's length.
         distribution_steps: rollout steps (1-based) at which OT and MMD are measured; steps past a
             rollout's end are skipped, the last step is always added.
         distribution_particles: OT and MMD on at most this many moving particles (the same random
@@ -250,6 +264,10 @@ class ForwardRollout:
         if min(lengths) < 1:
             raise ValueError(f"{dataset.name}: a test trajectory is too short to roll out from frame {dataset.start}")
         scale = float(dataset.metadata["default_connectivity_radius"])
+        shared = shared_stride(methods)
+        for method in methods:
+            if hasattr(method, "check_start"):
+                method.check_start(dataset.start)
         results, examples = {}, {"start": dataset.start, "truth": None, "predicted": {},
                               "particle_type": dataset.trajectories[0][1].cpu()}
         jobs = [(m, i) for m in range(len(methods)) for i in range(len(lengths))]
@@ -261,7 +279,7 @@ class ForwardRollout:
             position, particle_type = dataset.trajectories[i]
             predicted = method.forward_rollout(dataset, i, lengths[i])
             truth = position[dataset.start + 1 : dataset.start + 1 + lengths[i]]
-            return (self._metrics(predicted, truth, particle_type, dataset, position, scale),
+            return (self._metrics(predicted, truth, particle_type, dataset, position, scale, shared),
                     predicted.cpu().numpy() if i == 0 else None)
 
         bar = progress(len(jobs), f"forward rollouts ({dataset.name})")
@@ -270,17 +288,19 @@ class ForwardRollout:
         bar.close()
         for m, method in enumerate(methods):
             per_trajectory = [done[j][0] for j, job in enumerate(jobs) if job[0] == m]
-            results[method.label] = self._aggregate(per_trajectory)
+            results[method.label] = dict(self._aggregate(per_trajectory), stride=stride_of(method))
             examples["predicted"][method.label] = torch.from_numpy(done[jobs.index((m, 0))][1])
         examples["truth"] = dataset.trajectories[0][0][dataset.start + 1 : dataset.start + 1 + lengths[0]].cpu()
         settings = dict(start=dataset.start, steps=max(lengths), steps_per_trajectory=lengths,
                         trajectories=len(lengths), particles=int(dataset.trajectories[0][0].shape[1]),
+                        shared_stride=shared,  # rollout_mse_shared: frames t0 + shared, t0 + 2 shared, ..
                         distribution_particles=self.distribution_particles, mmd_scale=scale,
                         divergence=vars(self.divergence))
         return dict(settings=settings, methods=results), examples
 
-    def _metrics(self, predicted, truth, particle_type, dataset, position, scale) -> dict:
+    def _metrics(self, predicted, truth, particle_type, dataset, position, scale, shared: int = 1) -> dict:
         per_step = mse_per_step(predicted, truth)
+        on_shared = per_step[shared - 1 :: shared]  # the frames every method predicts itself
         moving = (particle_type != KINEMATIC).nonzero().squeeze(1)
         density_end = density_ratio(predicted[-1, moving], truth[-1, moving], scale)  # at the last step
         generator = torch.Generator().manual_seed(self.seed)
@@ -297,6 +317,7 @@ class ForwardRollout:
         bounds = dataset.bounds.to(predicted.device)
         outside = torch.maximum(bounds[:, 0] - predicted, predicted - bounds[:, 1]).clamp(min=0).nan_to_num(math.inf)
         return dict(rollout_mse=finite(per_step.mean()), mse_per_step=[finite(v) for v in per_step],
+                    rollout_mse_shared=finite(on_shared.mean()) if len(on_shared) else None,
                     max_outside=finite(outside.max() / scale),  # the farthest a particle got out of the box, in radii
                     density_end=density_end, ot=ot_values, mmd=mmd_values, steps=len(predicted),
                     stable_steps=len(predicted) if diverged is None else diverged, diverged=diverged is not None)
@@ -317,6 +338,8 @@ class ForwardRollout:
         return dict(
             rollout_mse=mean_or_none(r["rollout_mse"] for r in per_trajectory),
             rollout_mse_per_trajectory=[r["rollout_mse"] for r in per_trajectory],
+            # on the frames every method predicts itself (ForwardRollout's settings: shared_stride)
+            rollout_mse_shared=mean_or_none(r["rollout_mse_shared"] for r in per_trajectory),
             mse_per_step=curve,
             ot={s: at("ot", s) for s in distribution_steps},
             mmd={s: at("mmd", s) for s in distribution_steps},
@@ -340,6 +363,11 @@ class InverseConsistency:
             settings (``dropped_horizons``) and the report.
         threshold: a horizon is stable while its consistency MSE stays under this and neither
             the inferred nor the re-simulated trajectory diverges.
+
+    A model trained on every k-th frame (``stride`` k) runs the horizons that are multiples of
+    k, K / k steps of k frames each way (:func:`~rgns.training.rollouts.strided_inverse_then_forward`);
+    its other horizons hold ``None`` and ``trajectories = 0`` and are passed over by its max
+    stable steps.
         table_horizon: the K of the comparison table (the paper: 40); capped by the horizons run.
         divergence: :class:`Divergence` settings.
     """
@@ -366,18 +394,21 @@ class InverseConsistency:
             log.warning("%s: inverse horizons K = %s dropped: %s", dataset.name, ", ".join(map(str, dropped)),
                         next(iter(dropped.values())))
         bidirectional = [m for m in methods if m.bidirectional]
-        work = sum(K <= len(p) - 1 - start for p, _ in dataset.trajectories for K in horizons) * len(bidirectional)
+        work = sum(K <= len(p) - 1 - start and K % stride_of(m) == 0
+                   for m in bidirectional for p, _ in dataset.trajectories for K in horizons)
         bar = progress(work, f"inverse horizons ({dataset.name})")
         results, examples = {}, {"start": start, "horizon": horizons[-1], "truth": None, "inferred": {}, "resimulated": {},
                                 "particle_type": dataset.trajectories[0][1].cpu()}
         for method in bidirectional:
-            per_horizon = {}
+            per_horizon, stride = {}, stride_of(method)
+            method.check_start(start)
             for K in horizons:
                 rows = []
                 for i, (position, particle_type) in enumerate(dataset.trajectories):
-                    if start + K > len(position) - 1:
+                    if start + K > len(position) - 1 or K % stride:
                         continue
-                    inferred, resimulated = inverse_then_forward(method.model, position, particle_type, start, K)
+                    inferred, resimulated = strided_inverse_then_forward(method.model, position, particle_type, start,
+                                                                         K, stride)
                     speed = reference_speed(position, particle_type)
                     broken = (self.divergence.step(inferred.flip(0), dataset, speed) is not None
                               or self.divergence.step(resimulated, dataset, speed) is not None)
@@ -393,7 +424,9 @@ class InverseConsistency:
                     inverse_mse=mean_or_none(r["inverse_mse"] for r in rows),
                     consistency_mse=mean_or_none(r["consistency_mse"] for r in rows),
                     diverged=any(r["diverged"] for r in rows), trajectories=len(rows))
-            results[method.label] = dict(horizons=per_horizon, **self._stability(per_horizon))
+                if K % stride:
+                    per_horizon[K]["not_run"] = f"not a multiple of the method's stride, {stride} frames a step"
+            results[method.label] = dict(horizons=per_horizon, stride=stride, **self._stability(per_horizon))
         bar.close()
         table_horizon = max([K for K in horizons if K <= self.table_horizon] or horizons[:1])
         settings = dict(start=start, horizons=horizons, dropped_horizons=dropped, threshold=self.threshold,
@@ -403,9 +436,12 @@ class InverseConsistency:
 
     def _stability(self, per_horizon: dict) -> dict:
         """Max stable steps: the largest K such that every K' <= K tried stays under the
-        threshold without diverging; ``stable_beyond_tested`` when all of them do."""
+        threshold without diverging; ``stable_beyond_tested`` when all of them do. Horizons not
+        run (``not_run``: not a multiple of a strided model's stride) are passed over."""
         stable = 0
         for K, row in sorted(per_horizon.items()):
+            if "not_run" in row:
+                continue
             value = row["consistency_mse"]
             if row["diverged"] or value is None or value >= self.threshold:
                 return dict(max_stable_steps=stable, stable_beyond_tested=False)
@@ -489,7 +525,10 @@ class Efficiency:
     included: forward and inverse ms per step (median of ``repeats`` after a warm-up), peak
     memory of a step (see :func:`peak_memory_mb`) plus the weights, and parameters. A solver
     reference reports its own cost instead: ms per frame of its rollout of the first trajectory
-    (:meth:`rgns.evaluation.references.SolverReference.cost`).
+    (:meth:`rgns.evaluation.references.SolverReference.cost`). Each row also has ``stride`` and
+    ``forward_ms_per_frame``, the ms per step over the frames a step covers (a model trained at
+    ``data.stride = k`` steps k frames; the state it is timed on has its velocities over k
+    frames); the same as ms per step at stride 1.
 
     Args:
         repeats: timed repeats per measurement.
@@ -507,11 +546,16 @@ class Efficiency:
         results = {}
         for method in tqdm(methods, desc=f"efficiency ({dataset.name})", leave=False, dynamic_ncols=True):
             model = method.model
+            stride = stride_of(method)
             if model is None:  # a solver reference: the ms per frame of its own rollout
-                results[method.label] = method.cost(dataset)
+                cost = method.cost(dataset)
+                results[method.label] = dict(cost, stride=stride, forward_ms_per_frame=cost["forward_ms_per_step"])
                 continue
             device = next(iter(model.buffers())).device
-            state = State.from_positions(position[dataset.start - model.history : dataset.start + 1], particle_type)
+            # the state a rollout starts from: a strided model's history is of velocities over its stride
+            method.check_start(dataset.start)
+            first = dataset.start - stride * model.history
+            state = State.from_positions(position[first : dataset.start + 1 : stride], particle_type)
             weights_mb = sum(t.numel() * t.element_size() for t in [*model.parameters(), *model.buffers()]) / 2**20
             directions = {"forward": model.step} | ({"inverse": model.inverse_step} if model.bidirectional else {})
             row = dict(parameters=method.parameters, weights_mb=weights_mb)
@@ -521,6 +565,8 @@ class Efficiency:
                     peak = peak_memory_mb(lambda: step(state), device) if self.memory else None
                 row[f"{direction}_step_peak_mb"] = peak
                 row[f"{direction}_memory_mb"] = None if peak is None else weights_mb + peak
+            # a step of a stride-k model moves the simulation k frames on: its cost per frame of the data
+            row.update(stride=stride, forward_ms_per_frame=row["forward_ms_per_step"] / stride)
             results[method.label] = row
         models = [m.model for m in methods if m.model is not None]
         edges = int(models[0].graph(position[dataset.start]).size(1)) if models else 0
