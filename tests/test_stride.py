@@ -277,3 +277,8 @@ def test_a_stride_2_run_trains_and_is_scored_on_the_stride_1_data(dataset, tmp_p
                                              "start=5", "task=forward"])
     with pytest.raises(ConfigError, match=r"start=5: R-GNS 16x2 .* needs start >= 6"):
         evaluate(cfg)
+    # the goal task steps a model one frame at a time: refused, naming it, before any work
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", f"output_dir={tmp_path / 'goal'}", "task=goal"])
+    with pytest.raises(ConfigError, match=r"task.goal: R-GNS 16x2 .*\(data.stride=2\)"):
+        evaluate(cfg)

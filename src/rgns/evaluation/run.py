@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from rgns.data.contract import DatasetError, metadata_differences
 from rgns.data.datamodule import at_stride
+from rgns.errors import ConfigError
 from rgns.evaluation import plots, report
 from rgns.evaluation.methods import (build_baselines, check_fits, find_checkpoints, load_checkpoints, seed_groups,
                                      trained_on, without_hard_walls)
@@ -108,6 +109,13 @@ def evaluate(cfg: DictConfig) -> dict:
     groups = seed_groups(methods)
     tasks = [instantiate(task, _convert_="all") for task in cfg.task.values() if task is not None]  # task.X=null drops X
     make_references = instantiate(cfg.references, _convert_="all") if cfg.get("references") else None  # null: none
+
+    for task in tasks:  # a task that steps a model one frame at a time would misread a strided one
+        strided = [m for m in methods if m.stride > 1]
+        if strided and not getattr(task, "strided", False):
+            raise ConfigError(f"task.{task.name}: {strided[0].label} ({strided[0].source}) was trained on every "
+                              f"k-th frame (data.stride={strided[0].stride}), which this task does not support; "
+                              f"evaluate it with task=forward, task=inverse or task=all")
 
     by_root: dict[str, list] = {}
     for method in methods:

@@ -14,6 +14,10 @@ one dataset with the methods to compare: ``task(methods, dataset) -> (results, e
 - :class:`Efficiency`: ms per forward and inverse step (warm, median), and per frame (a step of a
   stride-k model covers k frames), peak memory of a step, parameters.
 
+A task that scores models trained on every k-th frame (``data.stride``) at their stride says so
+with ``strided = True``; the others are refused such a model before any work
+(:func:`rgns.evaluation.run.evaluate`).
+
 A new task is a class with a ``name`` and that call, a ``conf/task/<name>.yaml`` (``task=all``
 lists the files it composes), and its tables in :mod:`rgns.evaluation.report`. A task that also
 compares the solver references (:mod:`rgns.evaluation.references`: methods with ``model = None``,
@@ -244,6 +248,7 @@ class ForwardRollout:
 
     name = "forward"
     compares_references = True
+    strided = True
 
     def __init__(self, steps: int | None = 300, distribution_steps=(1, 10, 100, 300), distribution_particles: int = 1000,
                  divergence: dict | None = None, seed: int = 0, workers: int = 1):
@@ -373,6 +378,7 @@ class InverseConsistency:
     """
 
     name = "inverse"
+    strided = True
 
     def __init__(self, horizons=(1, 2, 5, 10, 20, 40, 60, 80, 100), threshold: float = 1e-3,
                  table_horizon: int = 40, divergence: dict | None = None):
@@ -537,6 +543,7 @@ class Efficiency:
 
     name = "efficiency"
     compares_references = True
+    strided = True
 
     def __init__(self, repeats: int = 5, memory: bool = True):
         self.repeats, self.memory = repeats, memory
