@@ -313,6 +313,68 @@ def headline_panels(labels: list[str], solvers: dict, most: int = PANELS_PER_ROW
     return main, [label for label in labels if label not in main]
 
 
+def generalise_charts(results: dict, examples: dict, out: Path) -> list[str]:
+    """task=generalise: per dataset, error against step on each condition (an X at each method's
+    first break over the trajectories), and per condition the state of the first
+    trajectory where each method broke (or its last step), over the truth at that step in grey."""
+    written = []
+    for name, d in results["datasets"].items():
+        conditions = {c: r for c, r in d.get("generalise", {}).get("conditions", {}).items() if "methods" in r}
+        if not conditions:
+            continue
+        colours, styles = _colours(results), _styles(results)
+        fig, axes = plt.subplots(len(conditions), 1, figsize=(11, 4 * len(conditions)), squeeze=False)
+        for ax, (condition, r) in zip(axes[:, 0], conditions.items()):
+            for label in _order(results, r["methods"]):
+                row = r["methods"][label]
+                curve = _array(row["mse_per_step"])
+                colour = colours.get(label, "0.5")
+                ax.plot(np.arange(1, len(curve) + 1), curve, color=colour, linestyle=styles.get(label, "-"), label=label)
+                if row["first_break"]:
+                    at = row["first_break"]["step"]
+                    y = curve[at] if at < len(curve) and np.isfinite(curve[at]) else np.nanmax(curve)
+                    ax.plot([at + 1], [y], marker="X", markersize=10, color=colour, markeredgecolor="black")
+            ax.set_yscale("log")
+            ax.set_xlabel("rollout step")
+            ax.set_ylabel("MSE (position units²)")
+            ax.set_title(f"{name}, {condition}: {r.get('description', '')} (X: first break)", fontsize=9)
+            ax.grid(True, which="both", alpha=0.3)
+            _legend_outside(ax)
+        save_figure(fig, out / f"generalise_{name}.png")
+        written.append(f"generalise_{name}.png")
+        for condition, example in (examples.get(name, {}).get("generalise") or {}).items():
+            if condition not in conditions or not example["predicted"]:
+                continue
+            labels = list(example["predicted"])
+            columns = min(len(labels), PANELS_PER_ROW)
+            rows = math.ceil(len(labels) / columns)
+            bounds = np.asarray(example["bounds"])
+            aspect = (bounds[1, 1] - bounds[1, 0]) / (bounds[0, 1] - bounds[0, 0])
+            fig, axes = plt.subplots(rows, columns, figsize=(2.6 * columns, 2.6 * rows * aspect + 0.6), squeeze=False)
+            kinematic = np.asarray(example["particle_type"]) == KINEMATIC
+            breaks = {label: conditions[condition]["methods"][label]["breaks"][0] for label in labels}
+            for ax, label in zip(axes.flat, labels):
+                at, frame = example["predicted"][label]
+                truth = example["truth"][label]
+                ax.scatter(truth[~kinematic, 0], truth[~kinematic, 1], s=1, color="0.8")
+                ax.scatter(frame[~kinematic, 0], frame[~kinematic, 1], s=1, color=colours.get(label, "C0"))
+                ax.scatter(frame[kinematic, 0], frame[kinematic, 1], s=1, color="0.2")
+                ax.set_xlim(*bounds[0])
+                ax.set_ylim(*bounds[1])
+                ax.set_aspect("equal")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                cause = breaks[label]["cause"]
+                ax.set_title(f"{label}\nstep {at + 1}: {cause or 'no break'}", fontsize=7)
+            for ax in list(axes.flat)[len(labels):]:
+                ax.axis("off")
+            fig.suptitle(f"{name}, {condition}: each method where it first broke, else at its last step "
+                         "(grey: the truth then)", fontsize=9)
+            save_figure(fig, out / f"generalise_{name}_{condition}.png")
+            written.append(f"generalise_{name}_{condition}.png")
+    return written
+
+
 def make_all(results: dict, examples: dict, out: Path, animation) -> list[str]:
     """Write every chart and animation; the file names written, in the report's order."""
     written = []
@@ -348,4 +410,4 @@ def make_all(results: dict, examples: dict, out: Path, animation) -> list[str]:
             animate(panels, titles, inverse["particle_type"], bounds, out / f"inverse_{dataset}.gif",
                     animation.max_frames, animation.fps)
             written.append(f"inverse_{dataset}.gif")
-    return written
+    return written + generalise_charts(results, examples, out)

@@ -281,6 +281,55 @@ def goal_tables(results: dict) -> list[str]:
     return out
 
 
+def generalise_tables(results: dict) -> list[str]:
+    """task=generalise: per dataset, each method on each condition: rollout MSE, stable steps and
+    what broke it first (over the condition's trajectories), and what each condition changed."""
+    out = []
+    for name, d in results["datasets"].items():
+        section = d.get("generalise")
+        if not section:
+            continue
+        s = section["settings"]
+        out += ["", f"## Where methods fail on {name}", "",
+                f"Each condition generated anew with the dataset's solver ({s['trajectories']} test "
+                f"trajector{'y' if s['trajectories'] == 1 else 'ies'}, seed "
+                f"{s['seed']}), every method rolled out {s['steps']} steps from frame {s['start']} without retraining "
+                "(trained models told the condition's box). Cells: rollout MSE (1e-3) / stable steps (the fewest "
+                "over the trajectories), and the first break's cause. Breaks: a NaN; a particle "
+                f"{s['rule']['margin_radii']:g} radii out of the box; kinetic energy {s['rule']['energy_factor']:g}x the "
+                f"truth's greatest (exploded); a cell of side R holding {s['rule']['compression']:g}x the truth's most "
+                f"(compressed); under {s['rule']['stall_fraction']:g}x the truth's mean speed over {s['rule']['window']} "
+                "steps while it moves (stalled).", ""]
+        if section.get("note"):
+            out += [section["note"], ""]
+        conditions = section["conditions"]
+        ran = [c for c, r in conditions.items() if "methods" in r]
+        out += [f"- {c}: {r.get('description') or r.get('skipped')}"
+                + (f" ({_span(r['particles'])} particles)" if r.get("particles") else "")
+                + ("" if c in ran else " (not run)") for c, r in conditions.items()]
+        labels = list(dict.fromkeys(label for c in ran for label in conditions[c]["methods"]))
+        rows = []
+        for label in labels:
+            cells = [label]
+            for c in ran:
+                row = conditions[c]["methods"].get(label)
+                if row is None:
+                    cells.append(GAP)
+                    continue
+                broke = row["first_break"]
+                cells.append(f"{number(row['rollout_mse'], 1e3)} / {row['stable_steps']}"
+                             + (f" ({broke['cause']} at {broke['step']})" if broke else ""))
+            rows.append(cells)
+        if ran:
+            out += ["", table(["Method", *ran], rows)]
+    return out
+
+
+def _span(values: list[int]) -> str:
+    low, high = min(values), max(values)
+    return f"{low}" if low == high else f"{low}-{high}"
+
+
 def not_evaluated(results: dict) -> list[str]:
     """A section naming the runs and checkpoints asked for but left out, and why, if any."""
     left_out = results.get("not_evaluated") or []
@@ -304,7 +353,7 @@ def render(results: dict, charts: list[str]) -> str:
              f"Run {results['date']} on {environment['device']} ({environment['threads']} thread(s)), "
              f"torch {environment['torch']}. Methods:", "", *sources, "", *warnings_section(results), *not_evaluated(results),
              *forward_tables(results), *seed_tables(results), *efficiency_tables(results), *inverse_tables(results),
-             *optimisation_tables(results), *goal_tables(results), "", "## Charts", ""]
+             *optimisation_tables(results), *goal_tables(results), *generalise_tables(results), "", "## Charts", ""]
     lines += [f"![{_title(c)}]({c})" for c in charts]
     return "\n".join(lines) + "\n"
 
