@@ -1,5 +1,5 @@
 #!/bin/bash
-# One call on a GPU machine (docs/pretrained.md, "A GPU session"): the CUDA test, then eight
+# One call on a lent GPU machine (the device tool): the CUDA test, then eight
 # fine-tuning runs side by side on the one GPU, each capped so that all have ended, checkpointed and
 # been packed (optimiser state dropped, pack.py) into $OUT before DEADLINE_S seconds. Needs .gpu/
 # from scripts/gpu_stage/prepare.sh; BENCH_S>0 runs `python -m rgns.bench models --device cuda` first.

@@ -80,7 +80,7 @@ class StepTimer(L.Callback):
 MAIN_OVERRIDES = {"rgns": ["model.memory_saving=false", "model.couplings=pairwise"],
                   "gns": ["model.layers=4", "model.decoder=pairwise"], "sep_gns": ["model.layers=4", "model.decoder=pairwise"]}
 BEFORE = {"rgns": ["model.memory_saving=true"]}
-# --density-union: the unrolled stage with the density term, as docs/pretrained.md trains it
+# --density-union: the unrolled stage with the density term, as the pushed stages of the staged recipes train it (docs/pretrain_recipes.md)
 DENSITY = ["recipe=unroll", "module.unroll.steps=[0]", "module.unroll.lengths=[6]", "data.horizon=6",
            "density_weight=10", "model.latent=64"]
 
