@@ -270,6 +270,9 @@ def test_a_stride_2_run_trains_and_is_scored_on_the_stride_1_data(dataset, tmp_p
     assert horizons["2"]["trajectories"] == horizons["4"]["trajectories"] == 1
     assert horizons["4"]["consistency_mse"] is not None and inverse[label]["stride"] == 2
     assert results["datasets"][dataset.name]["forward"]["methods"][label]["stride"] == 2
+    report = (out / "report.md").read_text()  # the report's efficiency table: the stride and ms per frame too
+    assert "| Stride (frames per step) | 2 | 1 |" in report
+    assert f"| Forward Inference Time (ms/frame) | {cost[label]['forward_ms_per_frame']:.4g} |" in report
 
     # a start earlier than its 3 velocities of 2 frames is refused, naming it
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
@@ -282,3 +285,7 @@ def test_a_stride_2_run_trains_and_is_scored_on_the_stride_1_data(dataset, tmp_p
         cfg = compose("evaluate", overrides=[f"ckpt_path={checkpoint}", f"output_dir={tmp_path / 'goal'}", "task=goal"])
     with pytest.raises(ConfigError, match=r"task.goal: R-GNS 16x2 .*\(data.stride=2\)"):
         evaluate(cfg)
+    # and the analysis tools, which step one frame at a time, refuse it by name
+    from rgns.evaluation import onestep
+    with pytest.raises(ConfigError, match=r"last.ckpt: steps 2 frames at a time \(data.stride=2\)"):
+        onestep.main([str(checkpoint)])

@@ -162,10 +162,15 @@ def load_checkpoint_on_split(args: argparse.Namespace):
     """``(model, root, dataset)``: the simulator of ``args.checkpoint``, the dataset folder
     (``args.data_root`` or the one it was trained on, :func:`trained_on`) and the first
     ``args.trajectories`` of its ``args.split``, checked to fit the model (:func:`check_fits`).
-    The arguments are :func:`add_checkpoint_arguments`'s."""
+    The arguments are :func:`add_checkpoint_arguments`'s. A strided checkpoint (``data.stride``)
+    is refused: the analysis tools step one frame at a time."""
     from rgns.evaluation.tasks import Dataset
 
     model, extras = load_simulator(args.checkpoint)
+    stride = int(extras["hparams"]["metadata"].get("stride", 1))
+    if stride > 1:  # these tools step a model one frame at a time
+        raise ConfigError(f"{args.checkpoint}: steps {stride} frames at a time (data.stride={stride}); this tool "
+                          "steps one frame at a time: evaluate it with evaluate.py task=forward or task=inverse")
     root = args.data_root or trained_on(args.checkpoint, extras["data_root"], extras.get("data_root_relative"))
     dataset = Dataset.load(root, args.split, args.trajectories, model.history, None)
     check_fits(model, args.checkpoint, dataset.metadata, dataset.particle_types, f"{root} ({args.split})")

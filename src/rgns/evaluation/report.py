@@ -149,11 +149,17 @@ def efficiency_tables(results: dict) -> list[str]:
             ["Inference Memory (MB)", *(number(cost[m]["forward_memory_mb"]) for m in labels)],
             ["Inverse Inference Memory (MB)", *(number(cost[m].get("inverse_memory_mb")) for m in labels)],
         ]
+        if any((cost[m].get("stride") or 1) > 1 for m in labels):  # a step over several frames: per frame too
+            rows.insert(2, ["Stride (frames per step)", *(str(cost[m].get("stride") or 1) for m in labels)])
+            rows.insert(3, ["Forward Inference Time (ms/frame)",
+                            *(number(cost[m].get("forward_ms_per_frame", cost[m]["forward_ms_per_step"])) for m in labels)])
         out += ["", f"## Efficiency comparison on {name}", "",
                 f"Measured on the first {d['split']} trajectory at frame {s['frame']}: {s['particles']} particles, "
                 f"{s['edges']} edges; one step with its radius graph, median of {s['repeats']} warm repeats on "
                 f"{s['device']} with {s['threads']} thread(s). Memory: {s['memory_method']}.{timing}", "",
-                table(["Metrics / Methods", *labels], rows, best_lowest={1, 2, 3, 4}, yardsticks=set(solvers))]
+                table(["Metrics / Methods", *labels], rows, yardsticks=set(solvers),
+                      best_lowest={i for i, row in enumerate(rows) if row[0] not in ("Parameter Count (M)",
+                                                                                       "Stride (frames per step)")})]
     return out
 
 
