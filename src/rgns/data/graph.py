@@ -11,17 +11,35 @@ import torch
 from scipy.spatial import cKDTree
 
 
-def radius_graph(position: np.ndarray | torch.Tensor, radius: float) -> torch.Tensor:
-    """All pairs closer than ``radius``.
+def radius_pairs(position: np.ndarray | torch.Tensor, radius: float) -> torch.Tensor:
+    """All pairs ``i < j`` closer than ``radius`` (at most ``radius``, as scipy counts), once each.
 
     Shapes:
-        position: ``[N, D]``  ->  edge_index: ``[2, E]`` (int64, on the CPU)
+        position: ``[N, D]``  ->  ``[2, P]`` (int64, on the CPU)
     """
     if isinstance(position, torch.Tensor):
         position = position.detach().cpu().numpy()
     pairs = cKDTree(np.asarray(position, dtype=np.float64)).query_pairs(radius, output_type="ndarray")
-    pairs = torch.from_numpy(pairs.astype(np.int64)).t()  # [2, E/2]
+    return torch.from_numpy(pairs.astype(np.int64)).t()  # [2, P]
+
+
+def radius_graph(position: np.ndarray | torch.Tensor, radius: float) -> torch.Tensor:
+    """All pairs closer than ``radius``, in both directions.
+
+    Shapes:
+        position: ``[N, D]``  ->  edge_index: ``[2, E]`` (int64, on the CPU)
+    """
+    pairs = radius_pairs(position, radius)  # [2, E/2]
     return torch.cat([pairs, pairs.flip(0)], dim=1)
+
+
+def batched_radius_pairs(position: torch.Tensor, radius: float, batch: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`radius_pairs` of several disjoint graphs stacked as in a PyG ``Batch``.
+
+    Shapes:
+        position: ``[N, D]``, batch: ``[N]`` (graph id per node, sorted)  ->  ``[2, P]`` (on the CPU)
+    """
+    return _per_graph(radius_pairs, position, radius, batch)
 
 
 def batched_radius_graph(position: torch.Tensor, radius: float, batch: torch.Tensor | None = None) -> torch.Tensor:
@@ -30,14 +48,70 @@ def batched_radius_graph(position: torch.Tensor, radius: float, batch: torch.Ten
     Shapes:
         position: ``[N, D]``, batch: ``[N]`` (graph id per node, sorted)  ->  ``[2, E]`` on ``position.device``
     """
+    return _per_graph(radius_graph, position, radius, batch).to(position.device)
+
+
+def _per_graph(edges, position: torch.Tensor, radius: float, batch: torch.Tensor | None) -> torch.Tensor:
+    """``edges(position, radius)`` of each graph of a batch, numbered as in the batch."""
     if batch is None:
-        return radius_graph(position, radius).to(position.device)
+        return edges(position, radius)
     counts = torch.bincount(batch).tolist()
     parts, offset = [], 0
     for chunk in torch.split(position, counts):
-        parts.append(radius_graph(chunk, radius) + offset)
+        parts.append(edges(chunk, radius) + offset)
         offset += len(chunk)
-    return torch.cat(parts, dim=1).to(position.device)
+    return torch.cat(parts, dim=1)
+
+
+class NeighbourList:
+    """The radius graph of a moving set of particles, step after step, from a list of candidate
+    pairs kept between steps (a Verlet list): the pairs within ``radius + skin`` of the positions
+    it was built at. While no particle has moved more than ``skin / 2`` since then, every pair
+    now within ``radius`` is among them (two ends moved less than ``skin`` apart), so filtering
+    the candidates by the true distance gives exactly the edges of a fresh :func:`radius_graph`
+    (distances in float64 and ``<= radius``, as scipy counts them; the edges in another order).
+    A larger displacement, other particles or another batch rebuild the candidates.
+
+    Call it with each step's positions (``batch`` as in :func:`batched_radius_graph`); it returns
+    the radius graph ``[2, E]`` on the positions' device. :attr:`builds` counts the builds.
+
+    Args:
+        radius (float): the connectivity radius R.
+        skin (float): the margin of the candidates beyond R, in position units; 0 builds a
+            fresh radius graph every call.
+    """
+
+    def __init__(self, radius: float, skin: float):
+        if skin < 0:
+            raise ValueError(f"a neighbour list's skin must be >= 0, got {skin}")
+        self.radius, self.skin = float(radius), float(skin)
+        self.builds = 0
+        self._built_at: torch.Tensor | None = None  # [N, D] float64, where the candidates were found
+        self._batch: torch.Tensor | None = None
+        self._candidates: torch.Tensor | None = None  # [2, P] pairs within radius + skin there
+
+    def __call__(self, position: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        if self.skin == 0:
+            return batched_radius_graph(position, self.radius, batch)
+        current = position.detach().to("cpu", torch.float64)  # [N, D]
+        if self._stale(current, batch):
+            self._candidates = batched_radius_pairs(current, self.radius + self.skin, batch)
+            self._built_at, self._batch = current, None if batch is None else batch.clone()
+            self.builds += 1
+        first, second = self._candidates
+        distance2 = (current[first] - current[second]).pow(2).sum(-1)  # [P], as scipy sums them
+        pairs = self._candidates[:, distance2 <= self.radius * self.radius]  # [2, E/2]
+        return torch.cat([pairs, pairs.flip(0)], dim=1).to(position.device)
+
+    def _stale(self, current: torch.Tensor, batch: torch.Tensor | None) -> bool:
+        if self._built_at is None or self._built_at.shape != current.shape:
+            return True
+        if (batch is None) != (self._batch is None):
+            return True
+        if batch is not None and not torch.equal(batch.cpu(), self._batch.cpu()):
+            return True
+        moved = (current - self._built_at).pow(2).sum(-1).max()  # the largest squared displacement
+        return bool(4 * moved >= self.skin * self.skin)  # some particle moved skin / 2 or more
 
 
 def edge_features(position: torch.Tensor, edge_index: torch.Tensor, radius: float,

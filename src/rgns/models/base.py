@@ -24,7 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from rgns.data.contract import KINEMATIC, NUM_PARTICLE_TYPES
-from rgns.data.graph import batched_radius_graph, wall_distance
+from rgns.data.graph import NeighbourList, batched_radius_graph, wall_distance
 from rgns.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -95,6 +95,10 @@ class Simulator(nn.Module):
     """
 
     wall_gradient: str = "stop"
+    # rollouts keep the pairs within (1 + neighbour_skin) R between steps (NeighbourList); 0: a fresh
+    # radius graph per step, the faster on WaterDrop, whose particles move up to 0.4 R a step (docs/benchmarks.md)
+    neighbour_skin: float = 0.0
+    precision: str = "float32"  # "bfloat16": the network's matrix products in bfloat16 (low_precision; opt-in)
 
     bidirectional: bool = False
     display_name: str = ""  # the name reports give the model (``describe``); empty: the class name
@@ -124,6 +128,17 @@ class Simulator(nn.Module):
                 raise ConfigError(f"metadata '{key}' is {metadata[key]} and noise_std={noise_std}: velocities and "
                                   f"accelerations are divided by sqrt({key}^2 + noise_std^2), which is 0 here; the "
                                   f"dataset's particles do not move, or its '{key}' is wrong (or set noise_std > 0)")
+
+    def low_precision(self) -> torch.autocast:
+        """The context the network's matrix products run in: ``torch.autocast`` to bfloat16 where
+        :attr:`precision` is ``"bfloat16"`` (an option for rollouts: on CPUs with AMX or
+        AVX512-BF16 its products are several times faster, its rounding is 2^-9; what it costs in
+        rollout error is in docs/benchmarks.md), disabled for ``"float32"``. The models keep
+        what must stay exact out of it: R-GNS its encoder and decoder (the latent stream and the
+        velocities), every model the integration of the positions."""
+        if self.precision not in ("float32", "bfloat16"):
+            raise ConfigError(f"precision={self.precision!r}: must be 'float32' or 'bfloat16'")
+        return torch.autocast(self.bounds.device.type, dtype=torch.bfloat16, enabled=self.precision == "bfloat16")
 
     @property
     def condition_channels(self) -> int:
@@ -238,14 +253,16 @@ class Simulator(nn.Module):
         """Radius graph of ``position`` (scipy on the CPU), on the model's device.  ``[2, E]``"""
         return batched_radius_graph(position, self.radius, batch).to(position.device)
 
-    def step(self, state: State, kinematic_position: Tensor | None = None) -> State:
+    def step(self, state: State, kinematic_position: Tensor | None = None,
+             neighbours: NeighbourList | None = None) -> State:
         """Advance one frame: ``(p^t, V^t) -> (p^{t+1}, V^{t+1})``.
 
         ``kinematic_position [N, D]``: positions of frame t+1 imposed on kinematic particles
-        (others' rows are ignored); ``None`` keeps them where they are.
+        (others' rows are ignored); ``None`` keeps them where they are. ``neighbours``: the
+        neighbour list a rollout keeps between steps (the same edges as :meth:`graph`).
         """
         position, history = state.position, state.velocity_history
-        edge_index = self.graph(position, state.batch)
+        edge_index = self.graph(position, state.batch) if neighbours is None else neighbours(position, state.batch)
         velocity = self.next_velocity(position, history, state.particle_type, edge_index, state.batch)  # [N, D]
         if self.hard_walls:
             velocity = self.stop_at_walls(position, velocity)
@@ -255,17 +272,19 @@ class Simulator(nn.Module):
         history = torch.cat([history[:, 1:], velocity.unsqueeze(1)], dim=1)  # [N, k, D]
         return replace(state, position=position + velocity, velocity_history=history)  # dt = 1
 
-    def inverse_step(self, state: State, kinematic_position: Tensor | None = None) -> State:
+    def inverse_step(self, state: State, kinematic_position: Tensor | None = None,
+                     neighbours: NeighbourList | None = None) -> State:
         """Go back one frame: ``(p^{t+1}, V^{t+1}) -> (p^t, V^t)``.
 
         ``p^t = p^{t+1} - v^{t+1}`` is exact; the network predicts the oldest velocity
         ``v^{t-k+1}``, which fixes the position of frame ``t-k``
         (``p^{t-k} = p^{t+1} - sum(V^{t+1}) - v^{t-k+1}``). ``kinematic_position [N, D]`` are the
         kinematic particles' positions at that frame, ``t-k``; ``None`` keeps them still there.
+        ``neighbours``: as in :meth:`step`.
         """
         history = state.velocity_history
         position = state.position - history[:, -1]  # p^t, exact
-        edge_index = self.graph(position, state.batch)
+        edge_index = self.graph(position, state.batch) if neighbours is None else neighbours(position, state.batch)
         velocity = self.oldest_velocity(position, history, state.particle_type, edge_index, state.batch)  # [N, D]
         if self.hard_walls:  # the frame it fixes, p^{t-k} = p^{t-k+1} - v^{t-k+1}, stays in the box
             earliest = state.position - history.sum(dim=1)  # p^{t-k+1}
@@ -301,12 +320,17 @@ class Simulator(nn.Module):
         past any fluid's compression or a pile against a wall: it stops there, logs it, and repeats
         its last frame for the remaining steps, so its error stays counted while a clump's
         quadratic radius graph no longer costs minutes per step. ``collapse_factor = None``: never stop.
+
+        The radius graphs come from one :class:`~rgns.data.graph.NeighbourList` with a skin of
+        :attr:`neighbour_skin` times R: the same edges as a fresh graph per step (found again
+        only when some particle has moved half the skin; with the default 0, every step).
         """
         factor = self.collapse_factor
         limit = None if factor is None else factor * self.densest_cell(state.position, state.batch)
+        neighbours = NeighbourList(self.radius, self.neighbour_skin * self.radius)
         positions = []
         for i in range(steps):
-            state = self.step(state, None if kinematic_positions is None else kinematic_positions[i])
+            state = self.step(state, None if kinematic_positions is None else kinematic_positions[i], neighbours)
             positions.append(state.position)
             if limit is not None and i + 1 < steps and self.densest_cell(state.position, state.batch) > limit:
                 log.warning("%s rollout collapsed at step %d of %d (more than %.0f particles in one cell "
@@ -325,11 +349,12 @@ class Simulator(nn.Module):
         """
         if not self.bidirectional:
             raise NotImplementedError(f"{type(self).__name__} simulates forward in time only")
+        neighbours = NeighbourList(self.radius, self.neighbour_skin * self.radius)  # as in rollout
         positions = []
         for i in range(steps):
             j = i + self.history  # the frame this step's predicted velocity fixes: t-1-j
             known = None if kinematic_positions is None or j >= steps else kinematic_positions[j]
-            state = self.inverse_step(state, known)
+            state = self.inverse_step(state, known, neighbours)
             positions.append(state.position)
         return torch.stack(positions)
 

@@ -5,9 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from rgns.data.graph import edge_channels, edge_features, reverse_edges, wall_distance, wall_gate
+from rgns.data.graph import edge_channels, edge_features, wall_distance, wall_gate
 from rgns.models.base import Simulator, check_size, dataset_gravity
 from rgns.nn import InteractionNetwork, mlp
+from rgns.nn.mlp import gathered_linear, memoised, split_first_layer
 
 
 class GNS(Simulator):
@@ -125,10 +126,18 @@ class GNS(Simulator):
         if not self.pairwise:
             return self.decoder(x) * self.acc_std_noisy + reference
         sender, receiver = edge_index
-        into = self.decoder(torch.cat([x[receiver], x[sender], geometry], -1))  # [E, D]: psi(h_i, h_j, g_ij)
-        # psi(h_j, h_i, g_ji) is psi on the reverse edge: the graph holds both directions of every pair
-        back = into[reverse_edges(edge_index, x.size(0))]
-        pairs = torch.zeros_like(position).index_add_(0, receiver, into - back)  # [N, D], sums to zero
+        # psi's first layer on [h_i, h_j, g_ij], its node terms computed once per node
+        first = self.decoder[0]
+        geometry_weight, node_weight, node_bias = memoised(
+            self, "decoder_first_layer", lambda: split_first_layer(first, geometry.size(1), edge_first=False),
+            first.weight, first.bias)
+        node_terms = nn.functional.linear(x, node_weight, node_bias).chunk(2, dim=1)  # receiver's, sender's
+        hidden = gathered_linear(node_terms[0][receiver], node_terms[1][sender], geometry, geometry_weight)
+        into = self.decoder[1:](hidden).to(position.dtype)  # [E, D]: psi(h_i, h_j, g_ij)
+        # sum_j psi(h_i, h_j, g_ij) - psi(h_j, h_i, g_ji): the second is psi on the reverse edge (the
+        # graph holds both directions of every pair), which i sends: received less sent, sums to zero
+        received = torch.zeros_like(position).index_add_(0, receiver, into)  # [N, D]
+        pairs = received - torch.zeros_like(position).index_add_(0, sender, into)  # sums to zero
         near = wall_gate(wall_distance(position, self.bounds, self.radius))  # [N, 1]: 1 at a wall, 0 from R on
         wall_in = torch.cat([x, self.normalise_velocity(velocity)], -1) if self.galilean else x
         return (pairs + near * self.wall_decoder(wall_in)) * self.acc_std_noisy + reference
@@ -136,7 +145,8 @@ class GNS(Simulator):
     def next_velocity(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                       edge_index: Tensor, batch: Tensor | None = None) -> Tensor:
         geometry = self.geometry(position, velocity_history, edge_index)  # [E, D + 1 (+ D + 1)]
-        x, edge_attr = self.encode(position, velocity_history, particle_type, geometry)
-        x = self.process(x, edge_index, edge_attr)
-        acceleration = self.decode(x, position, edge_index, geometry, velocity_history[:, -1])
-        return velocity_history[:, -1] + acceleration  # dt = 1
+        with self.low_precision():
+            x, edge_attr = self.encode(position, velocity_history, particle_type, geometry)
+            x = self.process(x, edge_index, edge_attr)
+            acceleration = self.decode(x, position, edge_index, geometry, velocity_history[:, -1])
+        return velocity_history[:, -1] + acceleration.to(velocity_history.dtype)  # dt = 1

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from rgns.data.contract import KINEMATIC
-from rgns.data.graph import batched_radius_graph
+from rgns.data.graph import NeighbourList, batched_radius_graph
 from rgns.models.base import State, dataset_gravity
 from rgns.models.gns import GNS
 
@@ -190,9 +190,10 @@ class NeuralSPH(GNS):
         # GNS's velocity carries the network's acceleration, a - g: the integrator adds g back
         return super().next_velocity(position, velocity_history, particle_type, edge_index, batch) + self.gravity
 
-    def step(self, state: State, kinematic_position: Tensor | None = None) -> State:
+    def step(self, state: State, kinematic_position: Tensor | None = None,
+             neighbours: NeighbourList | None = None) -> State:
         """The learned step of :class:`~rgns.models.base.Simulator`, then (eval mode) the relaxation."""
-        learned = super().step(state, kinematic_position)
+        learned = super().step(state, kinematic_position, neighbours)
         if self.training or self.relaxation.loops == 0:
             return learned
         relaxed = self.relaxation(learned.position, state.particle_type, state.batch)  # [N, D]

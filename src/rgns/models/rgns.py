@@ -7,6 +7,7 @@ from torch import Tensor, nn
 from rgns.data.graph import edge_channels, edge_features, kernel_density
 from rgns.models.base import Simulator, check_size, dataset_gravity
 from rgns.nn import ILP, RRMP, MLPEncoderDecoder, mlp
+from rgns.nn.mlp import memoised
 
 
 class RGNS(Simulator):
@@ -158,6 +159,10 @@ class RGNS(Simulator):
         the boost through :meth:`to_basis`, which is affine), and the encoder's bias; else ``None``."""
         if not self.galilean:
             return None
+        return memoised(self, "boost_frame", self._boost_frame, self.projection.weight, self.projection.bias,
+                        self.vel_mean, self.vel_std_noisy, self.acc_std_noisy)  # once per weight in rollouts
+
+    def _boost_frame(self) -> Tensor:
         weight = self.projection.weight  # [C, k D]
         unit = torch.eye(self.dim, dtype=weight.dtype, device=weight.device)[:, None, :].expand(-1, self.history, -1)
         moved = self.to_basis(unit) - self.to_basis(torch.zeros_like(unit))  # [D, k, D]: the affine part cancels
@@ -207,16 +212,19 @@ class RGNS(Simulator):
     def forward_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                         edge_index: Tensor) -> Tensor:
         """The unmasked forward output: ``V^t [N, k, D] -> decode(RRMP(encode(V^t))) (+ g) [N, k, D]``."""
-        edge_attr, condition = self.conditions(position, particle_type, edge_index, velocity_history[:, -1])  # v^t
-        latent = self.processor(self.encode(velocity_history), edge_index, edge_attr, condition, self.boost_frame())
+        latent, frame = self.encode(velocity_history), self.boost_frame()
+        with self.low_precision():  # the conditions and the couplings' increments; the latent stays float32
+            edge_attr, condition = self.conditions(position, particle_type, edge_index, velocity_history[:, -1])  # v^t
+            latent = self.processor(latent, edge_index, edge_attr, condition, frame)
         return self.decode(latent) + self.gravity_shift
 
     def inverse_history(self, position: Tensor, velocity_history: Tensor, particle_type: Tensor,
                         edge_index: Tensor) -> Tensor:
         """The unmasked inverse output: ``V^{t+1} [N, k, D] -> decode(RRMP^{-1}(encode(V^{t+1} (- g)))) [N, k, D]``."""
-        edge_attr, condition = self.conditions(position, particle_type, edge_index, velocity_history[:, -2])  # v^t
-        latent = self.processor.inverse(self.encode(velocity_history - self.gravity_shift), edge_index, edge_attr,
-                                        condition, self.boost_frame())
+        latent, frame = self.encode(velocity_history - self.gravity_shift), self.boost_frame()
+        with self.low_precision():
+            edge_attr, condition = self.conditions(position, particle_type, edge_index, velocity_history[:, -2])  # v^t
+            latent = self.processor.inverse(latent, edge_index, edge_attr, condition, frame)
         return self.decode(latent)
 
     def both_velocities(self, position: Tensor, forward_history: Tensor, inverse_history: Tensor,
@@ -224,11 +232,12 @@ class RGNS(Simulator):
         """Both directions of a training step on one graph, sharing the conditions (the edge
         encoder runs once for the two; ``v^t`` is ``forward_history``'s newest slot and
         ``inverse_history``'s second newest)."""
-        edge_attr, condition = self.conditions(position, particle_type, edge_index, forward_history[:, -1])
+        forward, inverse = self.encode(forward_history), self.encode(inverse_history - self.gravity_shift)
         frame = self.boost_frame()
-        forward = self.processor(self.encode(forward_history), edge_index, edge_attr, condition, frame)
-        inverse = self.processor.inverse(self.encode(inverse_history - self.gravity_shift), edge_index, edge_attr,
-                                         condition, frame)
+        with self.low_precision():
+            edge_attr, condition = self.conditions(position, particle_type, edge_index, forward_history[:, -1])
+            forward = self.processor(forward, edge_index, edge_attr, condition, frame)
+            inverse = self.processor.inverse(inverse, edge_index, edge_attr, condition, frame)
         return (self.decode(forward)[:, -1] + self.gravity_shift,  # newest slot
                 self.decode(inverse)[:, 0])  # oldest slot
 

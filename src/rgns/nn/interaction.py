@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+from torch.nn import functional as F
 from torch_geometric.nn import MessagePassing
 
-from rgns.nn.mlp import edge_input_terms, mlp
+from rgns.nn.mlp import gathered_linear, memoised, mlp, split_first_layer
 
 
 class InteractionNetwork(MessagePassing):
@@ -21,7 +22,7 @@ class InteractionNetwork(MessagePassing):
     layer of :math:`f^e`, linear in :math:`[\mathbf{e}_{ij}, \mathbf{n}_i, \mathbf{n}_j]`, is
     evaluated as :math:`W_e \mathbf{e}_{ij} + b + (W_r \mathbf{n})_i + (W_s \mathbf{n})_j`,
     the node terms on the nodes before they are gathered to the edges (the same function as
-    the concatenation, with a third of its per-edge work).
+    the concatenation, with a third of its per-edge work; :func:`~rgns.nn.mlp.gathered_linear`).
 
     Args:
         channels (int): width of the node and edge latents.
@@ -40,14 +41,18 @@ class InteractionNetwork(MessagePassing):
         self.node_mlp = mlp(2 * channels, channels, channels, hidden_layers)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor) -> tuple[Tensor, Tensor]:
-        edge_term, receiver, sender = edge_input_terms(self.edge_mlp, self.channels, x, edge_attr)  # [E|N, C]
-        message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, C]
+        first = self.edge_mlp[0]
+        edge_weight, node_weight, node_bias = memoised(
+            self, "first_layer", lambda: split_first_layer(first, self.channels), first.weight, first.bias)
+        receiver, sender = F.linear(x, node_weight, node_bias).chunk(2, dim=1)  # [N, C] each
+        message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_attr=edge_attr,
+                                    edge_weight=edge_weight)  # [E, C]
         aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, C]
         x_new = x + self.node_mlp(torch.cat([x, aggregated], dim=-1))
         return x_new, edge_attr + message
 
-    def edge_update(self, receiver_i: Tensor, sender_j: Tensor, edge_term: Tensor) -> Tensor:
-        return self.edge_mlp[1:]((edge_term + receiver_i).add_(sender_j))
+    def edge_update(self, receiver_i: Tensor, sender_j: Tensor, edge_attr: Tensor, edge_weight: Tensor) -> Tensor:
+        return self.edge_mlp[1:](gathered_linear(receiver_i, sender_j, edge_attr, edge_weight))
 
     def message(self, message: Tensor) -> Tensor:
         return message

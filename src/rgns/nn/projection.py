@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from rgns.nn.mlp import mlp
+from rgns.nn.mlp import memoised, mlp
 
 
 class ILP(nn.Module):
@@ -55,7 +55,8 @@ class ILP(nn.Module):
 
     def decode(self, n: Tensor) -> Tensor:
         # in float64: the float32 rounding of n is then the only error of decode(encode(x))
-        x = nn.functional.linear(n.double() - self.bias.double(), self.pseudo_inverse())
+        pseudo_inverse = memoised(self, "pseudo_inverse", self.pseudo_inverse, self.weight)  # one SVD per weight
+        x = nn.functional.linear(n.double() - self.bias.double(), pseudo_inverse)
         return x.to(n.dtype)
 
     def extra_repr(self) -> str:

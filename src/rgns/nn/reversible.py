@@ -21,8 +21,10 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.nn import GroupAddRev, MessagePassing
 
-from rgns.data.graph import reverse_edges, wall_gate
-from rgns.nn.mlp import edge_input_terms, last_linear, mlp
+from torch.nn import functional as F
+
+from rgns.data.graph import wall_gate
+from rgns.nn.mlp import gathered_linear, last_linear, memoised, mlp, split_first_layer
 
 
 class Coupling(MessagePassing):
@@ -68,8 +70,8 @@ class Coupling(MessagePassing):
     which a uniform change of every particle's velocity (a Galilean boost) moves the half latent,
     and the latent's origin (the encoder's bias). Each pair term is then read in its receiver's
     rest frame, both ends shifted by the receiver's own component along those directions
-    (:func:`rest_frame_map`), so it depends on relative motion only: if every latent moves by the
-    same boost, no pair term changes. The wall term keeps the absolute latent (walls are at rest).
+    (:func:`rest_frame_projection`, folded into the node terms: :meth:`first_layer`), so it
+    depends on relative motion only: if every latent moves by the same boost, no pair term changes. The wall term keeps the absolute latent (walls are at rest).
 
     Shapes:
         - **input:** half latent :math:`(|\mathcal{V}|, H)`, edge indices :math:`(2, |\mathcal{E}|)`,
@@ -107,46 +109,58 @@ class Coupling(MessagePassing):
                 nn.init.zeros_(self.edge_mlp[-1].weight)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor,
-                reverse: Tensor | None = None, frame: Tensor | None = None) -> Tensor:
-        """``reverse [E, 1]``: with ``pairwise``, each edge's reverse (:func:`~rgns.data.graph.reverse_edges`,
-        as a column: GroupAddRev hands it whole to both couplings); found here when not given.
-        ``frame [D + 1, H]``: with ``pairwise``, read the pair terms in their receivers' rest frames."""
-        edge_term, receiver, sender = edge_input_terms(self.edge_mlp, self.channels, x, edge_attr)  # [E|N, H_hidden]
-        if frame is not None:
-            if not self.pairwise:
-                raise ValueError("a rest frame applies to pairwise couplings only")
-            weight = self.edge_mlp[0].weight[:, self.channels :]  # [H_hidden, 2 H]: receiver, sender
-            own, other = weight.chunk(2, dim=1)
-            # W_r h_i + W_s h_j at h_i - s_i, h_j - s_i, with s_i the receiver's boost component
-            receiver = receiver - rest_frame_map(x, frame, own + other)
-        message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_term=edge_term)  # [E, H]
+                frame: Tensor | None = None) -> Tensor:
+        """``frame [D + 1, H]``: with ``pairwise``, read the pair terms in their receivers' rest frames."""
+        if frame is not None and not self.pairwise:
+            raise ValueError("a rest frame applies to pairwise couplings only")
+        first = self.edge_mlp[0]
+        edge_weight, node_weight, node_bias = memoised(
+            self, "first_layer", lambda: self.first_layer(frame), first.weight, first.bias, frame)
+        receiver, sender = F.linear(x, node_weight, node_bias).chunk(2, dim=1)  # [N, H_hidden] each
+        message = self.edge_updater(edge_index, receiver=receiver, sender=sender, edge_attr=edge_attr,
+                                    edge_weight=edge_weight)  # [E, H]
+        size = (x.size(0), x.size(0))
+        aggregated = self.propagate(edge_index, message=message, size=size)  # [N, H]: what i receives
         if self.pairwise:
-            back = reverse[:, 0] if reverse is not None else reverse_edges(edge_index, x.size(0))  # [E]
-            message = message - message[back]  # m_ij - m_ji: pairs cancel
-        aggregated = self.propagate(edge_index, message=message, size=(x.size(0), x.size(0)))  # [N, H]
-        if self.pairwise:
+            # sum_j (m_ij - m_ji): the graph holds both directions, so m_ji is what i sends along i -> j
+            aggregated = aggregated - self.propagate(edge_index.flip(0), message=message, size=size)
             near = wall_gate(condition[:, : self.wall_channels])  # [N, 1]: 1 at a wall, 0 from R on
             return aggregated + near * self.node_mlp(torch.cat([x, condition], dim=-1))
         return self.node_mlp(torch.cat([x, condition, aggregated], dim=-1))
 
-    def edge_update(self, receiver_i: Tensor, sender_j: Tensor, edge_term: Tensor) -> Tensor:
-        return self.edge_mlp[1:]((edge_term + receiver_i).add_(sender_j))
+    def first_layer(self, frame: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        r""":math:`f^e`'s first layer as :func:`~rgns.nn.mlp.split_first_layer` gives it; with a
+        rest ``frame``, the receiver's shift folded into the node terms: :math:`W_r \mathbf{h}_i + b`
+        becomes :math:`W_r \mathbf{h}_i + b - (W_r + W_s) P (\mathbf{h}_i - \mathbf{o})`
+        (:func:`rest_frame_projection`): the sender's term, read at :math:`\mathbf{h}_j - s_i`,
+        gives up its share of the receiver's shift :math:`s_i` to it. Computed once per weight
+        in rollouts (:func:`~rgns.nn.mlp.memoised`)."""
+        edge_weight, node_weight, node_bias = split_first_layer(self.edge_mlp[0], self.channels)
+        if frame is None:
+            return edge_weight, node_weight, node_bias
+        projection, origin = rest_frame_projection(frame)  # [H, H], [H]
+        own, other = node_weight.chunk(2)  # [H_hidden, H]: receiver, sender
+        shift = (own + other) @ projection  # [H_hidden, H]
+        receiver_bias, sender_bias = node_bias.chunk(2)
+        return (edge_weight, torch.cat([own - shift, other]),
+                torch.cat([receiver_bias + shift @ origin, sender_bias]))
+
+    def edge_update(self, receiver_i: Tensor, sender_j: Tensor, edge_attr: Tensor, edge_weight: Tensor) -> Tensor:
+        return self.edge_mlp[1:](gathered_linear(receiver_i, sender_j, edge_attr, edge_weight))
 
     def message(self, message: Tensor) -> Tensor:
         return message
 
 
-def rest_frame_map(x: Tensor, frame: Tensor, weight: Tensor) -> Tensor:
-    """``weight`` applied to each latent's component along the boost directions of ``frame``
-    (rows ``U [D, H]``, then the origin ``b [H]``): ``(x - b) P W^T`` with ``P`` the orthogonal
-    projection onto the span of ``U``. A latent moved by a boost, ``x + a U``, gives this plus
-    ``a U W^T``: subtracted from a linear layer's receiver term together with the sender's
-    weight, it cancels the boost in every pair.
+def rest_frame_projection(frame: Tensor) -> tuple[Tensor, Tensor]:
+    """The orthogonal projection ``P [H, H]`` onto the span of the boost directions of ``frame``
+    (rows ``U [D, H]``, then the origin ``b [H]``), and the origin. A latent moved by a boost,
+    ``x + a U``, has ``(x - b) P`` moved by ``a U``: subtracted from both ends of a pair, through
+    a linear layer's receiver and sender weights, it cancels the boost in every pair.
 
-    Shapes: x ``[N, H]``, frame ``[D + 1, H]``, weight ``[H_out, H]``  ->  ``[N, H_out]``"""
+    Shapes: frame ``[D + 1, H]``  ->  ``[H, H]``, ``[H]``"""
     directions, origin = frame[:-1], frame[-1]
-    projection = directions.T @ torch.linalg.solve(directions @ directions.T, directions)  # [H, H]
-    return nn.functional.linear(x - origin, weight @ projection)
+    return directions.T @ torch.linalg.solve(directions @ directions.T, directions), origin
 
 
 class ReversibleBlock(GroupAddRev):
@@ -327,30 +341,26 @@ class RRMP(nn.Module):
         for block in self.blocks:
             block.disable = plain
 
-    def _shared(self, x: Tensor, edge_index: Tensor, condition: Tensor, frame: Tensor | None) -> tuple[Tensor, ...]:
+    def _shared(self, x: Tensor, condition: Tensor, frame: Tensor | None) -> tuple[Tensor, ...]:
         """What every coupling reads besides its edge latent: the node conditions, and with
-        ``pairwise`` the reverse of every edge (found once for all the couplings) and the rest
-        frame, if any."""
-        if not self.pairwise:
-            if frame is not None:
-                raise ValueError("a rest frame applies to pairwise couplings only")
-            return (condition,)
-        reverse = reverse_edges(edge_index, x.size(0))[:, None]  # [E, 1]
+        ``pairwise`` the rest frame, if any."""
         if frame is None:
-            return condition, reverse
+            return (condition,)
+        if not self.pairwise:
+            raise ValueError("a rest frame applies to pairwise couplings only")
         if frame.size(-1) != x.size(-1):
             raise ValueError(f"the rest frame spans {frame.size(-1)} latent channels, the latent {x.size(-1)}")
         # GroupAddRev gives the first half of a split argument to f, which reads the second half
         # of the latent, and the second to g, which reads the first: the frame's halves swapped
         first, second = frame.chunk(2, dim=-1)
-        return condition, reverse, torch.cat([second, first], dim=-1)
+        return condition, torch.cat([second, first], dim=-1)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor,
                 frame: Tensor | None = None) -> Tensor:
         """``frame [D + 1, C]``: with ``pairwise``, pair terms read in their receivers' rest
         frames (:class:`Coupling`)."""
         self._set_memory_saving()
-        shared = self._shared(x, edge_index, condition, frame)
+        shared = self._shared(x, condition, frame)
         for block, edge_latent in zip(self.blocks, self.edge_latents(edge_attr)):
             x = block(x, edge_index, edge_latent, *shared)
         return x
@@ -358,7 +368,7 @@ class RRMP(nn.Module):
     def inverse(self, x: Tensor, edge_index: Tensor, edge_attr: Tensor, condition: Tensor,
                 frame: Tensor | None = None) -> Tensor:
         self._set_memory_saving()
-        shared = self._shared(x, edge_index, condition, frame)
+        shared = self._shared(x, condition, frame)
         for block, edge_latent in zip(reversed(self.blocks), reversed(self.edge_latents(edge_attr))):
             x = block.inverse(x, edge_index, edge_latent, *shared)
         return x
