@@ -14,8 +14,9 @@ in turns on the same states (one of each per round, the order rotated; median ov
 
 Each timed call advances ``--steps`` steps from the same state. It prints the ms per step and
 the ratio old / new, how far the new step's positions are from the old one's (one step, and a
-rollout of ``--steps``), and a roofline line: the step's FLOPs (``FlopCounterMode``) over its
-time, against a large ``torch.mm`` timed on the same thread in the same run. ``--compile`` also
+rollout of ``--steps``), a roofline line (the step's FLOPs, ``FlopCounterMode``, over its time,
+against a 1024-square fp32 ``torch.mm`` timed on the same thread in the same rounds), and the
+radius graph's cost per step over the true frames, fresh and from neighbour lists. ``--compile`` also
 times a compiled rollout (``Simulator.compile_network``) of ``--compile-steps`` steps, compilation
 included, against the eager one.
 """
@@ -32,11 +33,13 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from rgns.bench.models import interleaved_median_ms, keep_freed_memory
 from rgns.data.contract import KINEMATIC, open_split
-from rgns.data.graph import NeighbourList, batched_radius_graph, reverse_edges, wall_distance, wall_gate
+from rgns.data.graph import (NeighbourList, batched_radius_graph, radius_graph, reverse_edges, wall_distance,
+                             wall_gate)
 from rgns.models import GNS, RGNS, State
 from rgns.models.base import Simulator
 from rgns.nn.mlp import edge_input_terms
 
+PEAK_SIZE = 1024  # the square torch.mm whose rate stands for the machine's fp32 peak
 CHECKPOINTS = ["pretrained/waterdrop40_main_64/rgns.ckpt", "pretrained/waterdrop40_main_64/gns.ckpt"]
 
 
@@ -142,6 +145,27 @@ def new_stepper(model: Simulator):
     return lambda state: model.step(state, None, neighbours)
 
 
+@torch.no_grad()
+def one_step_along(model: Simulator, state: State, steps: int) -> float:
+    """The largest difference of the new and the old step's positions from each state of a new
+    rollout of ``steps`` steps (the same function, state by state, however far the rollouts part)."""
+    step, worst = new_stepper(model), 0.0
+    for _ in range(steps):
+        new = step(state)
+        worst = max(worst, float((new.position - reference_step(model, state).position).abs().max()))
+        state = new
+    return worst
+
+
+def first_graph_change(model: Simulator, runs: dict[str, Tensor]) -> int | None:
+    """The first step after which the old and the new rollout's radius graphs differ (``None``: never)."""
+    for index, (old, new) in enumerate(zip(runs["old"], runs["new"])):
+        edges = [set(map(tuple, radius_graph(p, model.radius).t().tolist())) for p in (old, new)]
+        if edges[0] != edges[1]:
+            return index + 1
+    return None
+
+
 def step_flops(step, state: State) -> int:
     """The FLOPs of one call of ``step`` (matrix products; the in-place ``addmm_`` counted too)."""
     def addmm_flops(self_shape, mat1_shape, mat2_shape, *args, **kwargs) -> int:
@@ -187,10 +211,13 @@ def measure(path: str, args) -> None:
         steppers = {"old": lambda s: reference_step(model, s), "new": new_stepper(model), "bf16": new_stepper(low)}
         one = {name: step(state).position for name, step in steppers.items()}
         runs = {name: rollout_positions(step, state, args.steps) for name, step in steppers.items()}
-        times = interleaved_median_ms({name: (lambda step=step: rollout_positions(step, state, args.steps))
-                                       for name, step in steppers.items()}, args.rounds, torch.device("cpu"))
+        timed = {name: (lambda step=step: rollout_positions(step, state, args.steps)) for name, step in steppers.items()}
+        a, b = torch.randn(PEAK_SIZE, PEAK_SIZE), torch.randn(PEAK_SIZE, PEAK_SIZE)
+        timed["mm"] = lambda: torch.mm(a, b)  # the roofline's peak, timed in the same rounds
+        times = interleaved_median_ms(timed, args.rounds, torch.device("cpu"))
         flops = step_flops(steppers["new"], state)
     edges = batched_radius_graph(state.position, model.radius).size(1)
+    peak = 2 * PEAK_SIZE**3 / (times.pop("mm") * 1e6)  # GFLOP/s
     per_step = {name: ms / args.steps for name, ms in times.items()}
     print(f"{path}: {type(model).__name__} {len(state.position)} particles, {edges} edges, {args.steps} steps "
           f"from frame {args.frame} of test trajectory {args.trajectory}, median of {args.rounds} rounds")
@@ -203,11 +230,13 @@ def measure(path: str, args) -> None:
         rollout = float((runs[name] - runs["old"]).abs().max()) / box
         print(f"  {name} - old, max |position| / box side: after 1 step {first:.1e}, "
               f"over {args.steps} steps {rollout:.1e}")
-    peak = args.peak
+    along = one_step_along(model, state, args.steps) / box
+    print(f"  new - old from each state of the new rollout, one step: at most {along:.1e} of the box side; "
+          f"the two rollouts' radius graphs first differ after step {first_graph_change(model, runs)}")
     achieved = flops / (per_step["new"] * 1e6)
     print(f"  roofline: {flops / 1e9:.3f} GFLOP per step (matrix products), new {achieved:.1f} GFLOP/s, "
-          f"old {flops / (per_step['old'] * 1e6):.1f} GFLOP/s, against a {peak:.1f} GFLOP/s fp32 torch.mm "
-          f"({100 * achieved / peak:.0f}% of it)")
+          f"old {flops / (per_step['old'] * 1e6):.1f} GFLOP/s, against {peak:.1f} GFLOP/s of a fp32 "
+          f"torch.mm {PEAK_SIZE}^2 in the same rounds ({100 * achieved / peak:.0f}% of it)")
     neighbour_lists(args, model.radius)
     if args.compile:
         compiled_rollout(model, state, args.compile_steps)
@@ -290,9 +319,7 @@ def main(argv: list[str]) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     keep_freed_memory()
-    args.peak = matmul_peak_gflops()
-    bf16_peak = matmul_peak_gflops(torch.bfloat16)
-    print(f"one thread; fp32 torch.mm 2048^2: {args.peak:.1f} GFLOP/s, bf16: {bf16_peak:.1f} GFLOP/s")
+    print(f"one thread; torch.mm 2048^2, best of 5: fp32 {matmul_peak_gflops():.1f} GFLOP/s, "
+          f"bf16 {matmul_peak_gflops(torch.bfloat16):.1f} GFLOP/s")
     for path in args.checkpoints:
         measure(path, args)
-    print(f"fp32 torch.mm again: {matmul_peak_gflops():.1f} GFLOP/s")

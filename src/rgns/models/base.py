@@ -96,7 +96,7 @@ class Simulator(nn.Module):
 
     wall_gradient: str = "stop"
     # rollouts keep the pairs within (1 + neighbour_skin) R between steps (NeighbourList); 0: a fresh
-    # radius graph per step, the faster on WaterDrop, whose particles move up to 0.4 R a step (docs/benchmarks.md)
+    # radius graph per step, the faster on WaterDrop, whose splash outruns a skin (docs/benchmarks.md)
     neighbour_skin: float = 0.0
     precision: str = "float32"  # "bfloat16": the network's matrix products in bfloat16 (low_precision; opt-in)
 
@@ -131,11 +131,12 @@ class Simulator(nn.Module):
 
     def low_precision(self) -> torch.autocast:
         """The context the network's matrix products run in: ``torch.autocast`` to bfloat16 where
-        :attr:`precision` is ``"bfloat16"`` (an option for rollouts: on CPUs with AMX or
-        AVX512-BF16 its products are several times faster, its rounding is 2^-9; what it costs in
-        rollout error is in docs/benchmarks.md), disabled for ``"float32"``. The models keep
-        what must stay exact out of it: R-GNS its encoder and decoder (the latent stream and the
-        velocities), every model the integration of the positions."""
+        :attr:`precision` is ``"bfloat16"``, disabled for ``"float32"`` (the default). An option
+        for rollouts on CPUs with AMX or AVX512-BF16, whose bfloat16 products are several times
+        faster; its rounding (2^-9) reaches the predicted accelerations, which pair terms get as
+        differences of two evaluations: what it buys and costs is measured in docs/benchmarks.md.
+        The models keep out of it what must stay exact: R-GNS its encoder, decoder and latent
+        stream, every model the integration of the positions."""
         if self.precision not in ("float32", "bfloat16"):
             raise ConfigError(f"precision={self.precision!r}: must be 'float32' or 'bfloat16'")
         return torch.autocast(self.bounds.device.type, dtype=torch.bfloat16, enabled=self.precision == "bfloat16")

@@ -19,9 +19,8 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
-from torch_geometric.nn import GroupAddRev, MessagePassing
-
 from torch.nn import functional as F
+from torch_geometric.nn import GroupAddRev, MessagePassing
 
 from rgns.data.graph import wall_gate
 from rgns.nn.mlp import gathered_linear, last_linear, memoised, mlp, split_first_layer
@@ -71,7 +70,8 @@ class Coupling(MessagePassing):
     and the latent's origin (the encoder's bias). Each pair term is then read in its receiver's
     rest frame, both ends shifted by the receiver's own component along those directions
     (:func:`rest_frame_projection`, folded into the node terms: :meth:`first_layer`), so it
-    depends on relative motion only: if every latent moves by the same boost, no pair term changes. The wall term keeps the absolute latent (walls are at rest).
+    depends on relative motion only: if every latent moves by the same boost, no pair term
+    changes. The wall term keeps the absolute latent (walls are at rest).
 
     Shapes:
         - **input:** half latent :math:`(|\mathcal{V}|, H)`, edge indices :math:`(2, |\mathcal{E}|)`,
