@@ -250,3 +250,22 @@ def test_references_null_drops_them(generated, tmp_path, monkeypatch):
     data = results["datasets"][generated.name]
     assert list(data["forward"]["methods"]) == ["GNS 8x1"] and "references" not in data
     assert "Solver references" not in (tmp_path / "report.md").read_text()
+
+
+def test_precision_and_neighbour_skin_reach_every_checkpoint_and_a_bad_precision_is_refused(generated, tmp_path,
+                                                                                           monkeypatch):
+    from rgns.errors import ConfigError
+
+    overrides = ["task=forward", "references=null", "baselines=null", "task.efficiency=null", "task.forward.steps=3",
+                 "task.forward.distribution_steps=[1]", "animation.max_frames=2", "trajectories=1"]
+    scores = {}
+    for precision in ("float32", "bfloat16"):
+        cfg = stand_in_config(generated, monkeypatch, [*overrides, f"output_dir={tmp_path / precision}",
+                                                       f"precision={precision}", "neighbour_skin=0.2"])
+        stand_in = run_module.load_checkpoints([], "cpu")[0]
+        scores[precision] = evaluate(cfg)["datasets"][generated.name]["forward"]["methods"]["GNS 8x1"]["rollout_mse"]
+        assert stand_in.model.precision == precision and stand_in.model.neighbour_skin == 0.2
+    assert scores["bfloat16"] != scores["float32"]  # the other arithmetic was used
+    cfg = stand_in_config(generated, monkeypatch, [*overrides, f"output_dir={tmp_path / 'half'}", "precision=float16"])
+    with pytest.raises(ConfigError, match="precision='float16'"):
+        evaluate(cfg)

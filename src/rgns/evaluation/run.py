@@ -106,6 +106,10 @@ def evaluate(cfg: DictConfig) -> dict:
     if cfg.get("hard_walls") is not None:  # roll every checkpoint out with (or without) hard walls
         for method in methods:
             method.model.hard_walls = bool(cfg.hard_walls)
+    for method in methods:  # how each checkpoint's steps are computed: the same model, other arithmetic
+        method.model.precision = cfg.get("precision", "float32")
+        method.model.neighbour_skin = float(cfg.get("neighbour_skin", 0.0))
+        method.model.low_precision()  # an unknown precision is refused here, before any work
     groups = seed_groups(methods)
     tasks = [instantiate(task, _convert_="all") for task in cfg.task.values() if task is not None]  # task.X=null drops X
     make_references = instantiate(cfg.references, _convert_="all") if cfg.get("references") else None  # null: none
