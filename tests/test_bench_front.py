@@ -85,11 +85,14 @@ def test_a_run_measures_models_and_solvers_on_the_same_frames(generated, tmp_pat
     root, checkpoint = generated
     out = tmp_path / "front.json"
     main(["--checkpoints", str(checkpoint), "--data-root", str(root), "--trajectories", "1", "--steps", "6",
-          "--resolutions", "0.5", "--reference", str(checkpoint), "--json", str(out)])
+          "--resolutions", "0.5", "--reference", str(checkpoint), "--precision", "float32", "bfloat16",
+          "--json", str(out)])
     result = json.loads(out.read_text())
     rows = result["rows"]
-    (label,) = [k for k, r in rows.items() if r["learned"]]
-    assert set(rows) == {label, "MPM 32 cells/m", "MPM floor (1e-4 m)"}
+    label = "GNS 8x1"
+    assert set(rows) == {label, f"{label} bf16", "MPM 32 cells/m", "MPM floor (1e-4 m)"}
+    assert rows[f"{label} bf16"]["rollout_mse"] != rows[label]["rollout_mse"]  # the other arithmetic
+    assert result["analysis"]["marks"].get("reference", label) == label  # the float32 one is the reference
     assert all(r["ms_per_frame"] > 0 and math.isfinite(r["rollout_mse"]) for r in rows.values())
     # the learned model's error is its evaluation rollout's, on frames 6..11
     (method,) = load_checkpoints(find_checkpoints(ckpt_paths=[str(checkpoint)]))

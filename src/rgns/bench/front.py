@@ -1,6 +1,6 @@
 """Accuracy against cost, learned models and the dataset's solver side by side:
 ``python -m rgns.bench front [--checkpoints A B ...] [--data-root DIR] [--trajectories N] [--steps S]
-[--resolutions F ...] [--reference CKPT] [--within F] [--json PATH]``.
+[--resolutions F ...] [--reference CKPT] [--within F] [--precision P ...] [--json PATH]``.
 
 Every method rolls out the same test trajectories of one dataset in one process on one thread,
 in turns (trajectory by trajectory, every method on each before the next), so that a drift in the
@@ -177,6 +177,8 @@ def main(argv: list[str]) -> None:
                         help="the checkpoint the fastest good model is compared with")
     parser.add_argument("--within", type=float, default=1.5,
                         help="report the smallest model within this factor of the best learned rollout MSE")
+    parser.add_argument("--precision", nargs="+", default=["float32"], choices=["float32", "bfloat16"],
+                        help="each checkpoint at each of these (bfloat16: its matrix products; labelled 'bf16')")
     parser.add_argument("--json", default=None, help="also write the rows and the analysis here")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -185,13 +187,22 @@ def main(argv: list[str]) -> None:
     paths = args.checkpoints if args.checkpoints is not None else sorted(glob.glob(DEFAULT_CHECKPOINTS))
     if not paths:
         parser.error(f"no checkpoints: pass --checkpoints ({DEFAULT_CHECKPOINTS} matches nothing here)")
-    methods = load_checkpoints(find_checkpoints(ckpt_paths=paths))
+    methods = []
+    for precision in args.precision:  # each checkpoint at each arithmetic: "<label> bf16" for bfloat16
+        loaded = load_checkpoints(find_checkpoints(ckpt_paths=paths))
+        for method in loaded:
+            method.model.precision = precision
+            method.model.low_precision()  # refuses an unknown precision by name
+            if precision != "float32":
+                method.label += " bf16" if precision == "bfloat16" else f" {precision}"
+        methods += loaded
     history = max(m.model.history * int((m.trained_metadata or {}).get("stride", 1)) for m in methods)
     dataset = Dataset.load(args.data_root, "test", args.trajectories, history, args.start)
     references, note = SolverReferences(args.resolutions, args.floor or None)(dataset)
     if not references:
         parser.error(f"{args.data_root}: {note}")
-    reference = next((m.label for m in methods if Path(m.source).resolve() == Path(args.reference).resolve()), None)
+    reference = next((m.label for m in methods if Path(m.source).resolve() == Path(args.reference).resolve()
+                      and m.model.precision == "float32"), None)
     print(f"{len(methods)} checkpoints and {len(references)} solver runs, {len(dataset.trajectories)} trajectories x "
           f"{args.steps} steps from frame {dataset.start}, one thread", flush=True)
     rows = measure(methods + references, dataset, args.steps)
