@@ -368,8 +368,8 @@ def generalise_charts(results: dict, examples: dict, out: Path) -> list[str]:
                 ax.set_title(f"{label}\nstep {at + 1}: {cause or 'no break'}", fontsize=7)
             for ax in list(axes.flat)[len(labels):]:
                 ax.axis("off")
-            fig.suptitle(f"{name}, {condition}: each method where it first broke, else at its last step "
-                         "(grey: the truth then)", fontsize=9)
+            fig.suptitle(f"{name}, {condition}, first trajectory: each method where it first broke, else at its "
+                         "last step (grey: the truth then)", fontsize=9)
             save_figure(fig, out / f"generalise_{name}_{condition}.png")
             written.append(f"generalise_{name}_{condition}.png")
     return written
