@@ -99,13 +99,15 @@ def test_regime_counts_neighbours_and_the_energy_left():
     assert 0 < left < 0.3  # decelerating: the last 10 frames have less energy than the first
 
 
-def test_default_scene_stays_in_waterdrop_regime(tmp_path):
-    """The default scene must form pools that settle, not films one particle thick (mean
-    neighbours ~5-6) or water still sloshing at the end (docs/validation.md)."""
-    folder = generate_dataset("waterdrop", tmp_path / "default", num_trajectories=3, splits={"valid": 1, "test": 1},
+@pytest.mark.parametrize("scene, least", [("waterdrop", 9.0), ("waterramps", 9.0), ("sand", 6.5)])
+def test_default_scene_stays_in_waterdrop_regime(tmp_path, scene, least):
+    """The default scene and the benchmarks made in its box must form pools (or piles) that
+    settle, not films one particle thick (mean neighbours ~5-6) or water still sloshing at the end
+    (docs/validation.md)."""
+    folder = generate_dataset(scene, tmp_path / scene, num_trajectories=3, splits={"valid": 1, "test": 1},
                               workers=1, progress=False)
     summary = read_metadata(folder)["regime"]
-    assert summary["settled_neighbours_min"] >= 9.0, summary
+    assert summary["settled_neighbours_min"] >= least, summary
     assert summary["energy_left_max"] <= 0.15, summary
     with open_split(folder, "train") as train:
         assert dataset_regime(train, 0.015)["settled_neighbours_min"] == summary["settled_neighbours_min"]
