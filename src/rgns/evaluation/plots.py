@@ -99,6 +99,15 @@ def _legend_outside(ax, **kwargs) -> None:
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, frameon=False, **kwargs)
 
 
+def _log_axes(ax, xlabel: str, ylabel: str, title: str, fontsize: int = 10) -> None:
+    """An error chart's axes: log y, labels, title and a light grid."""
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=fontsize)
+    ax.grid(True, which="both", alpha=0.3)
+
+
 def _array(values) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values], dtype=float)
 
@@ -211,13 +220,10 @@ def error_vs_step(results: dict, path: Path) -> bool:
                 ax.plot([fail], [y], marker="X", markersize=11, color=colours[label], markeredgecolor="black",
                         label=f"{label} fails at step {fail}")
         s = d["forward"]["settings"]
-        ax.set_yscale("log")
-        ax.set_xlabel("rollout step")
-        ax.set_ylabel("MSE of positions (position units²)")
         n = s["trajectories"]
-        ax.set_title(f"{name}: error against rollout step (mean of {n} trajector{'y' if n == 1 else 'ies'} "
-                     f"from frame {s['start']}; dashed: without hard walls; X: first broken step)", fontsize=10)
-        ax.grid(True, which="both", alpha=0.3)
+        _log_axes(ax, "rollout step", "MSE of positions (position units²)",
+                  f"{name}: error against rollout step (mean of {n} trajector{'y' if n == 1 else 'ies'} "
+                  f"from frame {s['start']}; dashed: without hard walls; X: first broken step)")
         _legend_outside(ax)
     save_figure(fig, path)
     return True
@@ -240,11 +246,7 @@ def consistency_vs_k(results: dict, path: Path) -> bool:
         left.axhline(s["threshold"], color="grey", linestyle=":", label=f"stability threshold {s['threshold']:g}")
         for ax, title in ((left, "consistency MSE (inverse, then forward, at frame t0 + K)"),
                           (right, "inverse MSE at frame t0 (K <= k: exact, not drawn)")):
-            ax.set_yscale("log")
-            ax.set_xlabel("inverse steps K")
-            ax.set_ylabel("MSE of positions (position units²)")
-            ax.set_title(f"{name}: {title}", fontsize=10)
-            ax.grid(True, which="both", alpha=0.3)
+            _log_axes(ax, "inverse steps K", "MSE of positions (position units²)", f"{name}: {title}")
         _legend_outside(right)
     save_figure(fig, path)
     return True
@@ -334,11 +336,8 @@ def generalise_charts(results: dict, examples: dict, out: Path) -> list[str]:
                     at = row["first_break"]["step"]
                     y = curve[at] if at < len(curve) and np.isfinite(curve[at]) else np.nanmax(curve)
                     ax.plot([at + 1], [y], marker="X", markersize=10, color=colour, markeredgecolor="black")
-            ax.set_yscale("log")
-            ax.set_xlabel("rollout step")
-            ax.set_ylabel("MSE (position units²)")
-            ax.set_title(f"{name}, {condition}: {r.get('description', '')} (X: first break)", fontsize=9)
-            ax.grid(True, which="both", alpha=0.3)
+            _log_axes(ax, "rollout step", "MSE (position units²)",
+                      f"{name}, {condition}: {r.get('description', '')} (X: first break)", fontsize=9)
             _legend_outside(ax)
         save_figure(fig, out / f"generalise_{name}.png")
         written.append(f"generalise_{name}.png")
