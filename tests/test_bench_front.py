@@ -125,6 +125,7 @@ def test_the_chart_plots_ms_per_frame_and_draws_the_learned_front(tmp_path, monk
     summary = {"R-GNS 8x2": dict(rollout_mse=1e-3, forward_ms_per_step=8.0, forward_ms_per_frame=2.0, parameters=10),
                "GNS 8x2": dict(rollout_mse=5e-4, forward_ms_per_step=6.0, parameters=10),
                "GNS 4x1": dict(rollout_mse=2e-3, forward_ms_per_step=9.0, parameters=5),  # dearer and worse
+               "Const. velocity": dict(rollout_mse=8e-2, forward_ms_per_step=0.2, parameters=0),  # no training
                "MPM 32 cells/m": dict(rollout_mse=4e-4, forward_ms_per_step=0.5, parameters=0)}
     results = {"methods": {k: {} for k in summary},
                "datasets": {"d": {"summary": summary, "references": {"methods": {"MPM 32 cells/m": {}}}}}}

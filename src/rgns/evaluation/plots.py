@@ -135,7 +135,8 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
     as k frames): each learned method a circle (area by parameters; its no-hard-walls twin hollow,
     in its colour) numbered on the chart and named in the legend beside it, so that no label lies
     over another; solvers as stars joined into the classical front; the learned front (the
-    learned methods no cheaper one beats) as a solid line; the predictability floor dotted."""
+    trained methods no cheaper trained one beats; the training-free baselines are not on it) as a
+    solid line; the predictability floor dotted."""
     colours = _colours(results)
     points = [(name, label, row) for name, d in results["datasets"].items() for label, row in d["summary"].items()
               if row.get("rollout_mse") is not None and ms_per_frame(row) is not None]
@@ -177,8 +178,8 @@ def accuracy_vs_speed(results: dict, path: Path) -> bool:
         if len(front) > 1:
             ax.plot(*zip(*front), color="0.35", linestyle="--", linewidth=1, zorder=2,
                     label="classical solver front" + (f" ({name})" if len(datasets) > 1 else ""))
-        learned = pareto_front([(ms_per_frame(row), row["rollout_mse"]) for n, label, row in points
-                                if n == name and label not in solvers])
+        learned = pareto_front([(ms_per_frame(row), row["rollout_mse"]) for n, label, row in points  # trained ones
+                                if n == name and label not in solvers and (row.get("parameters") or 0) > 0])
         if len(learned) > 1:
             ax.plot(*zip(*learned), color="0.1", linestyle="-", linewidth=1.2, zorder=2,
                     label="learned front" + (f" ({name})" if len(datasets) > 1 else ""))
