@@ -26,7 +26,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +36,7 @@ from torch import Tensor
 from rgns.data.contract import KINEMATIC
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.evaluation.metrics import density_ratio, mse_per_step
+from rgns.evaluation.tasks import Dataset, finite, mean_or_none
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +199,6 @@ class Generalisation:
 
     def __call__(self, methods, dataset) -> tuple[dict, dict]:
         from rgns.evaluation.references import SolverReferences
-        from rgns.evaluation.tasks import Dataset
 
         generator = dataset.metadata.get("generator")
         settings = dict(conditions=self.conditions, trajectories=self.trajectories, steps=self.steps, seed=self.seed,
@@ -243,7 +242,7 @@ class Generalisation:
                                              before=position[condition.start])
                 per_step = mse_per_step(predicted, truth)
                 moving = particle_type != KINEMATIC
-                per.append(dict(rollout_mse=_finite(per_step.mean()), mse_per_step=[_finite(v) for v in per_step],
+                per.append(dict(rollout_mse=finite(per_step.mean()), mse_per_step=[finite(v) for v in per_step],
                                 stable_steps=length if step is None else step, steps=length, break_step=step,
                                 cause=cause, density_end=density_ratio(predicted[-1, moving], truth[-1, moving], radius)))
                 if i == 0:
@@ -254,11 +253,6 @@ class Generalisation:
         return dict(methods=rows), example
 
 
-def _finite(value) -> float | None:
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
 def _aggregate(per: list[dict]) -> dict:
     longest = max(r["steps"] for r in per)
     curve = []
@@ -267,7 +261,7 @@ def _aggregate(per: list[dict]) -> dict:
         curve.append(float(np.mean(values)) if values else None)
     mses = [r["rollout_mse"] for r in per]
     broken = [(r["break_step"], r["cause"]) for r in per if r["break_step"] is not None]
-    return dict(rollout_mse=None if any(m is None for m in mses) else float(np.mean(mses)),
+    return dict(rollout_mse=mean_or_none(mses),
                 rollout_mse_per_trajectory=mses, mse_per_step=curve,
                 stable_steps=min(r["stable_steps"] for r in per),
                 breaks=[dict(step=r["break_step"], cause=r["cause"]) for r in per],
