@@ -10,7 +10,8 @@ import torch
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.evaluation.baselines import ConstantVelocity
-from rgns.evaluation.generalise import BreakRule, Generalisation, classify_break, condition_scene, densest_cells
+from rgns.evaluation.generalise import (BreakRule, Generalisation, break_picture, classify_break, condition_scene,
+                                      densest_cells, inverse_rollout, up_axis)
 from rgns.evaluation.methods import Method
 from rgns.evaluation.tasks import Dataset
 
@@ -188,6 +189,19 @@ def test_evaluate_task_generalise_writes_the_table_and_the_charts(tmp_path, monk
     assert cell.startswith(f"{rows['GNS 8x1']['rollout_mse'] * 1e3:.4g} / {rows['GNS 8x1']['stable_steps']}")
     for name in (f"generalise_{generated.name}.png", f"generalise_{generated.name}_wide_box.png"):
         assert (out / name).stat().st_size > 0
+    # backwards on `longer` only (the default inverse_conditions), the forward-only methods named
+    inverse = section["conditions"]["longer"]["inverse"]
+    assert "inverse" not in section["conditions"]["wide_box"]
+    assert set(inverse["without_inverse"]) == {"GNS 8x1", "MPM 32 cells/m"}
+    assert set(inverse["methods"]) == {"Const. velocity", "Ballistic + walls"}
+    assert inverse["from_frames"] == [11] and inverse["methods"]["Ballistic + walls"]["steps"] == 6
+    backwards = markdown_tables((out / "report.md").read_text())[f"Backwards in time on {generated.name}"]
+    assert backwards["Method"] == ["longer"] and backwards["GNS 8x1"] == ["no inverse"]
+    row = inverse["methods"]["Ballistic + walls"]
+    assert backwards["Ballistic + walls"][0].startswith(f"{row['rollout_mse'] * 1e3:.4g} / {row['stable_steps']}")
+    pictures = [r.get("break_picture") for c in section["conditions"].values() for r in (c, c.get("inverse") or {})]
+    for picture in filter(None, pictures):
+        assert (out / picture).stat().st_size > 0 and f"]({picture})" in (out / "report.md").read_text()
 
 
 class _Factory:
@@ -200,3 +214,145 @@ class _Factory:
         path = self.root / name
         path.mkdir()
         return path
+
+
+# --- backwards in time -------------------------------------------------------------------------
+
+METADATA = dict(dim=2, bounds=BOUNDS.tolist(), default_connectivity_radius=RADIUS, vel_mean=[0.0, 0.0],
+                vel_std=[1e-3, 1e-3], acc_mean=[0.0, 0.0], acc_std=[1e-4, 1e-4], gravity=[0.0, -9.81])
+HISTORY = 5
+
+
+class Planted(ConstantVelocity):
+    """Constant velocity backwards (exact on a drifting lattice) for its first ``at`` inverse steps,
+    then its predicted oldest velocity is ``plant(velocity, position, n)`` at the n-th step after
+    (0, 1, ..). A velocity predicted at inverse step c (0-based) moves the positions from step
+    c + k on: it enters the history as its oldest of k."""
+
+    def __init__(self, metadata: dict, plant, at: int):
+        super().__init__(metadata, HISTORY)
+        self.plant, self.at, self.calls = plant, at, 0
+
+    def oldest_velocity(self, position, velocity_history, *args, **kwargs):
+        velocity = super().oldest_velocity(position, velocity_history, *args, **kwargs)
+        self.calls += 1
+        return velocity if self.calls <= self.at else self.plant(velocity, position, self.calls - self.at - 1)
+
+
+def _nan(velocity, position, n):
+    return torch.full_like(velocity, float("nan"))
+
+
+def _one_runs_off(velocity, position, n):
+    velocity = velocity.clone()
+    velocity[0] = torch.tensor([0.05, 0.0])  # back in time p^{t-1} = p^t - v: particle 0 runs off to the left
+    return velocity
+
+
+def _jitter(velocity, position, n):
+    return torch.full_like(velocity, 0.1 * (-1) ** n)  # back and forth along the diagonal, in the box
+
+
+def _contract(velocity, position, n):
+    return 0.02 * (position - position.mean(0))  # back in time: 2 % nearer the centre each step
+
+
+def _rest(velocity, position, n):
+    return torch.zeros_like(velocity)
+
+
+def lattice_dataset(frames: int = 81, speed: float = 2e-3, dim: int = 2) -> Dataset:
+    truth = drifting(frames, speed=speed)
+    metadata = dict(METADATA)
+    if dim == 3:  # the same lattice, a layer at z = 0.5
+        truth = torch.cat([truth, torch.full((*truth.shape[:2], 1), 0.5)], -1)
+        metadata.update(dim=3, bounds=[[0.0, 1.0]] * 3, vel_mean=[0.0] * 3, vel_std=[1e-3] * 3, acc_mean=[0.0] * 3,
+                        acc_std=[1e-4] * 3, gravity=[0.0, -9.81, 0.0])
+    return Dataset("lattice", "in memory", metadata, [(truth, torch.full((truth.shape[1],), WATER))], start=HISTORY)
+
+
+def inverse_break(plant, at: int, steps: int = 60, dataset: Dataset | None = None):
+    dataset = dataset or lattice_dataset()
+    task = Generalisation("unused", steps=steps)
+    method = Method("planted", Planted(dataset.metadata, plant, at), None, "baseline")
+    section, _, breaks = task.run([method], dataset, "inverse")
+    return section["methods"]["planted"], breaks
+
+
+def test_the_inverse_rollout_of_an_exact_inverse_is_the_truth_backwards():
+    dataset = lattice_dataset()
+    position, particle_type = dataset.trajectories[0]
+    method = Method("exact", ConstantVelocity(dataset.metadata, HISTORY), None, "baseline")
+    inferred = inverse_rollout(method, position, particle_type, end=80, steps=70)
+    assert torch.allclose(inferred, position[10:80].flip(0), atol=1e-5)  # frames 79, 78, .., 10
+    row, breaks = inverse_break(_rest, at=10**6)  # never planted
+    assert row["first_break"] is None and row["stable_steps"] == 60 and breaks == {}
+
+
+# planted at inverse step 20 (5 for the slow contraction), the positions change from step 25 (10) on;
+# the lattice drifts right at 2e-3 a frame, so backwards particle 0 is at x = 0.2 + 2e-3 (79 - s) at step s
+@pytest.mark.parametrize("plant, at, cause, steps", [
+    (_nan, 20, "non-finite", (25, 25)),  # the first frame the NaN velocity reaches
+    (_one_runs_off, 20, "left the box", (33, 33)),  # x = 0.31 at step 24, then 0.05 a step left: < -0.1 at 24 + 9
+    (_jitter, 20, "exploded", (25, 25)),  # energy 2e-2 a step, 5,000x the truth's 4e-6
+    (_contract, 5, "compressed", (11, 59)),  # while it contracts (checked against the cells below)
+    (_rest, 20, "stalled", (24, 24)),  # the first window of 20 steps with one moving (0.05 of the truth's speed)
+])
+def test_a_planted_failure_backwards_is_named_at_its_step(plant, at, cause, steps):
+    row, breaks = inverse_break(plant, at)
+    assert row["first_break"]["cause"] == cause, row["first_break"]
+    step = row["first_break"]["step"]
+    assert steps[0] <= step <= steps[1]
+    if cause == "compressed":
+        inferred = torch.as_tensor(breaks["planted"]["predicted"])
+        truth = lattice_dataset().trajectories[0][0]
+        assert densest_cells(inferred[None], BOUNDS[:, 0], RADIUS)[0] > 3 * int(densest_cells(truth, BOUNDS[:, 0], RADIUS).max())
+    assert row["stable_steps"] == row["first_break"]["step"] and row["steps"] == 60
+    broke = breaks["planted"]
+    assert broke["frame"] == 80 - 1 - broke["step"] and broke["cause"] == cause  # step s is frame end - 1 - s
+    truth = lattice_dataset().trajectories[0][0]
+    assert np.allclose(broke["truth"], truth[broke["frame"]].numpy())
+
+
+def test_methods_without_an_inverse_are_listed_with_the_reason():
+    dataset = lattice_dataset()
+
+    class ForwardOnly(ConstantVelocity):
+        bidirectional = False
+
+    class Solver:  # a solver reference: no model, forward only
+        label, model, bidirectional = "MPM 32 cells/m", None, False
+
+    methods = [Method("forward only", ForwardOnly(dataset.metadata, HISTORY), None, "baseline"), Solver(),
+               Method("Const. velocity", ConstantVelocity(dataset.metadata, HISTORY), None, "baseline")]
+    section, _, _ = Generalisation("unused", steps=30).run(methods, dataset, "inverse")
+    assert set(section["methods"]) == {"Const. velocity"}
+    assert section["without_inverse"] == {"forward only": "ForwardOnly simulates forward in time only",
+                                          "MPM 32 cells/m": "the dataset's solver runs forward in time only"}
+    assert section["from_frames"] == [80]
+    from rgns.evaluation.report import generalise_inverse_table
+    lines = generalise_inverse_table("lattice", dict(steps=30), {"longer": section})
+    rows = {line.split("|")[1].strip(): line.split("|")[2].strip() for line in "\n".join(lines).splitlines()
+            if line.startswith("| ")}
+    assert rows["forward only"] == rows["MPM 32 cells/m"] == "no inverse"
+    assert rows["Const. velocity"].startswith(f"{section['methods']['Const. velocity']['rollout_mse'] * 1e3:.4g} / 30")
+
+
+@pytest.mark.parametrize("dim, broken, columns", [(2, 4, 6), (3, 2, 4)])
+def test_the_break_picture_is_written_in_panels_a_person_can_read(tmp_path, dim, broken, columns):
+    """Planted breaks of ``broken`` methods: a PNG of a pair (method, truth) per view, at most six
+    panels a row: 2D three methods a row, 3D one a row in two views."""
+    import imageio.v2 as imageio
+
+    dataset = lattice_dataset(dim=dim)
+    methods = [Method(f"planted {i}", Planted(dataset.metadata, _nan, 10 + i), None, "baseline") for i in range(broken)]
+    section, _, breaks = Generalisation("unused", steps=40).run(methods, dataset, "inverse")
+    assert set(breaks) == {m.label for m in methods}
+    path = tmp_path / "breaks.png"
+    assert break_picture(breaks, dataset.bounds, up_axis(dataset.metadata), "planted", path)
+    height, width = imageio.imread(path).shape[:2]
+    assert width == pytest.approx(2.3 * columns * 110, abs=2)  # the figure's inches at the project's 110 dpi
+    rows = broken // (columns // (2 * (dim - 1)))
+    assert height > 2.3 * rows * 110
+    assert not break_picture({}, dataset.bounds, 1, "nothing broke", tmp_path / "none.png")
+    assert not (tmp_path / "none.png").exists()

@@ -20,28 +20,49 @@ beside the dataset's solver at a coarser grid and the training-free baselines, a
 the break of the first trajectory (``generalise_<dataset>_<condition>.png``). Every condition's
 trajectories are ``start + steps + 1`` frames long, generated under ``<out_dir>/conditions/``
 (deterministic: ``seed``).
+
+Both directions of time (``directions``): on the conditions listed in ``inverse_conditions``
+(``longer`` by default) every method that can run backwards (its model is ``bidirectional``:
+R-GNS, Sep-GNS's backward network, the training-free baselines' mirrored rules; see
+:func:`no_inverse`) is also rolled back ``steps`` steps from each trajectory's last frame
+(:func:`inverse_rollout`), the truth run backwards as the reference, and its breaks are named by
+the same :func:`classify_break`: a speed is the distance between consecutive frames whichever way
+time runs, so "exploded" is a kinetic energy far above the true past's greatest and "stalled" an
+inferred past at rest while the true past moves. The methods without an inverse (forward-only
+networks, the solver) are listed with the reason (``without_inverse``).
+
+Per condition and direction, each method that broke is drawn at its first break over the
+trajectories beside the truth at that frame (:func:`break_picture`,
+``generalise_<dataset>_<condition>_<direction>_breaks.png``; a 3D scene in two views).
 """
 from __future__ import annotations
 
 import contextlib
 import copy
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import torch
 from torch import Tensor
 
 from rgns.data.contract import KINEMATIC
 from rgns.data.generate import generate_dataset, scene_config
+from rgns.data.graph import NeighbourList
 from rgns.evaluation.metrics import density_ratio, mse_per_step
-from rgns.evaluation.tasks import Dataset, finite, mean_or_none
+from rgns.evaluation.plots import PANELS_PER_ROW, save_figure
+from rgns.evaluation.tasks import Dataset, finite, mean_or_none, stride_of
+from rgns.models import State
+from rgns.training.rollouts import fill_frames
 
 log = logging.getLogger(__name__)
 
 CAUSES = ("non-finite", "left the box", "exploded", "compressed", "stalled")
 CONDITIONS = ("longer", "wide_box", "more_bodies", "full", "ramps_outside")
+DIRECTIONS = ("forward", "inverse")
 
 
 @dataclass
@@ -122,6 +143,136 @@ def classify_break(predicted: Tensor, truth: Tensor, particle_type: Tensor, boun
     return step, cause
 
 
+def no_inverse(method) -> str | None:
+    """Why ``method`` cannot run backwards in time, or ``None`` where it can: a model that is
+    ``bidirectional`` (R-GNS, Sep-GNS with its backward network, the baselines' mirrored rules)."""
+    if method.model is None:
+        return "the dataset's solver runs forward in time only"
+    if not method.bidirectional:
+        return f"{type(method.model).__name__} simulates forward in time only"
+    return None
+
+
+@torch.no_grad()
+def inverse_rollout(method, position: Tensor, particle_type: Tensor, end: int, steps: int) -> Tensor:
+    """Frames ``end - 1, end - 2, .., end - steps`` of a trajectory, inferred back from its true
+    state at frame ``end`` by ``method``'s inverse steps, kinematic particles at their true
+    positions. A model trained on every s-th frame (its ``stride``) steps back s frames at a time
+    from the state built of frames ``end, end - s, ..``; the frames between its steps are filled in
+    along straight lines (:func:`~rgns.training.rollouts.fill_frames`).
+
+    As :meth:`~rgns.models.Simulator.rollout` does forward, a rollout that collapses (its densest
+    cell of side R past ``model.collapse_factor`` times the first state's) repeats its last frame
+    from there, and one that turns non-finite is NaN from there: no radius graph is built of it.
+
+    Shapes:
+        position: ``[T, N, D]`` ground truth  ->  ``[steps, N, D]`` inferred frames end-1, end-2, ..
+    """
+    model, stride = method.model, stride_of(method)
+    if not 1 <= steps <= end:
+        raise ValueError(f"{steps} inverse steps back from frame {end}: between 1 and {end} (the truth stops at frame 0)")
+    phase = position[end % stride :: stride]  # frame end - s j is entry last - j
+    last, n, k = end // stride, math.ceil(steps / stride), model.history
+    if last < k:
+        raise ValueError(f"{method.label}: an inverse rollout from frame {end} needs {k} velocities of history "
+                         f"{stride} frame(s) apart before it (frame >= {stride * k})")
+    state = State.from_positions(phase[last - k : last + 1], particle_type)
+    neighbours = NeighbourList(model.radius, model.neighbour_skin * model.radius)  # as Simulator.rollout
+    limit = None if model.collapse_factor is None else model.collapse_factor * model.densest_cell(state.position)
+    frames = []
+    for j in range(n):
+        if not bool(torch.isfinite(state.position - state.velocity_history[:, -1]).all()):  # the frame it reaches
+            log.warning("%s: inverse rollout non-finite at step %d of %d: NaN from there", method.label, j + 1, n)
+            frames.extend([torch.full_like(state.position, float("nan"))] * (n - j))
+            break
+        # the oldest velocity predicted at step j fixes frame end - s (j + 1 + k): kinematic particles go there
+        state = model.inverse_step(state, phase[max(last - 1 - j - k, 0)], neighbours)
+        frames.append(state.position)
+        if limit is not None and j + 1 < n and model.densest_cell(state.position) > limit:
+            log.warning("%s: inverse rollout collapsed at step %d of %d (more than %.0f particles in one cell of "
+                        "side R): the remaining frames repeat its last", method.label, j + 1, n, limit)
+            frames.extend([state.position] * (n - j - 1))
+            break
+    predicted = fill_frames(position[end], torch.stack(frames), stride)[:steps]
+    kinematic = particle_type == KINEMATIC
+    predicted[:, kinematic] = position[end - steps : end].flip(0)[:, kinematic]
+    return predicted
+
+
+def _views(dim: int, up: int) -> list[tuple[int, int, str]]:
+    """The projections a picture shows: ``(horizontal axis, vertical axis, name)``; a 3D scene as
+    seen from the front (first horizontal axis against ``up``) and from above."""
+    if dim == 2:
+        return [(0, 1, "")]
+    across = [a for a in range(dim) if a != up]
+    return [(across[0], up, "front"), (across[0], across[1], "top")]
+
+
+def _panel(ax, points: np.ndarray, kinematic: np.ndarray, low: np.ndarray, high: np.ndarray, colour: str,
+           title: str) -> None:
+    """Particles ``[N, 2]`` in the box ``low..high`` with a margin of a tenth of it; those beyond
+    the margin (or not finite) in red on its edge, counted in the title."""
+    margin = 0.1 * (high - low)
+    shown_low, shown_high = low - margin, high + margin
+    outside = ~np.isfinite(points).all(1) | ((points < shown_low) | (points > shown_high)).any(1)
+    points = np.clip(np.nan_to_num(points, nan=shown_low[0]), shown_low, shown_high)
+    colours = np.where(outside, "tab:red", np.where(kinematic, "0.75", colour))
+    ax.scatter(points[:, 0], points[:, 1], s=1.5, c=colours, clip_on=False)
+    ax.add_patch(plt.Rectangle(low, *(high - low), fill=False, lw=0.6, ec="0.3"))
+    ax.set_xlim(shown_low[0], shown_high[0])
+    ax.set_ylim(shown_low[1], shown_high[1])
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(title + (f"\n{int(outside.sum())} off the chart" if outside.any() else ""), fontsize=7)
+
+
+def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path) -> bool:
+    """Each broken method's state at its first break beside the truth at that frame, written to
+    ``path`` (PNG); ``False``, and no file, where no method broke.
+
+    ``breaks``: ``{label: {"step", "cause", "trajectory", "frame", "predicted" [N, D], "truth"
+    [N, D], "particle_type" [N]}}``. A 2D scene: a pair of panels (method, truth) per method, three
+    methods a row; a 3D scene: a row per method, the pair seen from the front (the first horizontal
+    axis against the ``up`` axis) and from above. Moving particles blue (the method's) or dark
+    grey (the truth's), kinematic ones light grey."""
+    if not breaks:
+        return False
+    bounds = np.asarray(bounds, dtype=float)
+    views = _views(len(bounds), up)
+    per_method = 2 * len(views)
+    methods_a_row = max(1, PANELS_PER_ROW // per_method)
+    columns = per_method * min(len(breaks), methods_a_row)
+    rows = math.ceil(len(breaks) / methods_a_row)
+    sizes = [(bounds[v, 1] - bounds[v, 0]) / (bounds[h, 1] - bounds[h, 0]) for h, v, _ in views]
+    fig, axes = plt.subplots(rows, columns, figsize=(2.3 * columns, 2.3 * rows * max(sizes) + 0.8), squeeze=False)
+    for ax in axes.flat:
+        ax.set_axis_off()
+    axis_names = "xyz"
+    for m, (label, broke) in enumerate(breaks.items()):
+        kinematic = np.asarray(broke["particle_type"]) == KINEMATIC
+        row, first = divmod(m, methods_a_row)
+        for v, (h, u, name) in enumerate(views):
+            seen = f", {name} ({axis_names[h]}-{axis_names[u]})" if name else ""
+            low, high = bounds[[h, u], 0], bounds[[h, u], 1]
+            for p, (who, points, colour) in enumerate((
+                    (f"{label}\ntrajectory {broke['trajectory']}, step {broke['step'] + 1}: {broke['cause']}{seen}",
+                     broke["predicted"], "tab:blue"),
+                    (f"truth, frame {broke['frame']}{seen}", broke["truth"], "0.3"))):
+                ax = axes[row, first * per_method + 2 * v + p]
+                ax.set_axis_on()
+                _panel(ax, np.asarray(points, dtype=float)[:, [h, u]], kinematic, low, high, colour, who)
+    fig.suptitle(title, fontsize=9)
+    save_figure(fig, path)
+    return True
+
+
+def up_axis(metadata: dict) -> int:
+    """The vertical axis of a scene: the one gravity pulls along (``metadata["gravity"]``), else the second."""
+    gravity = np.abs(np.asarray(metadata.get("gravity") or [0.0, 1.0], dtype=float))
+    return int(np.argmax(gravity)) if gravity.any() else 1
+
+
 @contextlib.contextmanager
 def in_box(model, bounds: Tensor):
     """A model's walls moved to ``bounds [D, 2]`` for the block (its ``bounds`` buffer), then back."""
@@ -174,13 +325,18 @@ class Generalisation:
     """The ``generalise`` task (see the module's docs).
 
     Args:
-        out_dir: where the conditions' datasets are generated (``conditions/<dataset>_<name>``).
+        out_dir: where the conditions' datasets are generated (``conditions/<dataset>_<name>``)
+            and the break pictures written.
         conditions: names among :data:`CONDITIONS`.
         trajectories: test trajectories per condition.
-        steps: rollout steps from the dataset's start frame (capped by each trajectory's length).
+        steps: rollout steps from the dataset's start frame (capped by each trajectory's length),
+            and back from each trajectory's last frame.
         seed: of the conditions' generation.
         references: the conditions' solver references (``SolverReferences`` arguments); ``None``: none.
         rule: :class:`BreakRule` fields.
+        directions: among :data:`DIRECTIONS`: ``forward`` on every condition, ``inverse`` on those
+            in ``inverse_conditions`` that run.
+        inverse_conditions: the conditions also rolled backwards.
     """
 
     name = "generalise"
@@ -188,21 +344,27 @@ class Generalisation:
     strided = True  # rollouts through Method.forward_rollout, which steps a strided model at its stride
 
     def __init__(self, out_dir: str, conditions=("longer", "wide_box", "more_bodies", "full"), trajectories: int = 2,
-                 steps: int = 1000, seed: int = 7, references: dict | None = None, rule: dict | None = None):
-        unknown = [c for c in conditions if c not in CONDITIONS]
+                 steps: int = 1000, seed: int = 7, references: dict | None = None, rule: dict | None = None,
+                 directions=("forward", "inverse"), inverse_conditions=("longer",)):
+        unknown = [c for c in [*conditions, *inverse_conditions] if c not in CONDITIONS]
         if unknown:
-            raise ValueError(f"task.generalise.conditions: unknown {unknown}; known: {', '.join(CONDITIONS)}")
+            raise ValueError(f"task.generalise.conditions / inverse_conditions: unknown {unknown}; known: "
+                             f"{', '.join(CONDITIONS)}")
+        if not directions or any(d not in DIRECTIONS for d in directions):
+            raise ValueError(f"task.generalise.directions={list(directions)}: one or both of {', '.join(DIRECTIONS)}")
         self.out_dir, self.conditions, self.trajectories = Path(out_dir), list(conditions), int(trajectories)
         self.steps, self.seed = int(steps), int(seed)
         self.references = {"resolutions": [0.5], "floor_perturbation": None} if references is None else references
         self.rule = BreakRule(**(rule or {}))
+        self.directions, self.inverse_conditions = [d for d in DIRECTIONS if d in directions], list(inverse_conditions)
 
     def __call__(self, methods, dataset) -> tuple[dict, dict]:
         from rgns.evaluation.references import SolverReferences
 
         generator = dataset.metadata.get("generator")
         settings = dict(conditions=self.conditions, trajectories=self.trajectories, steps=self.steps, seed=self.seed,
-                        start=dataset.start, rule=vars(self.rule), references=self.references)
+                        start=dataset.start, rule=vars(self.rule), references=self.references,
+                        directions=self.directions, inverse_conditions=self.inverse_conditions)
         if not isinstance(generator, dict) or not isinstance(generator.get("params"), dict):
             return dict(settings=settings, note="no generator in the metadata: no scene to change", conditions={}), {}
         results, examples = {}, {}
@@ -219,38 +381,80 @@ class Generalisation:
             condition = Dataset.load(str(root), "test", self.trajectories, dataset.start, dataset.start,
                                      dataset.trajectories[0][0].device)
             references = (SolverReferences(**self.references)(condition)[0] if self.references else [])
-            results[name], examples[name] = self.run(methods + references, condition)
+            results[name] = {}
+            for direction in self.directions:
+                if direction == "inverse" and name not in self.inverse_conditions:
+                    continue
+                section, example, breaks = self.run(methods + references, condition, direction)
+                picture = f"generalise_{dataset.name}_{name}_{direction}_breaks.png"
+                title = (f"{dataset.name}, {name}, {direction}: each method that broke, at its first break over the "
+                         "trajectories, beside the truth at that frame")
+                drawn = break_picture(breaks, condition.bounds, up_axis(condition.metadata), title, self.out_dir / picture)
+                section["break_picture"] = picture if drawn else None
+                if direction == "forward":
+                    results[name].update(section)
+                    examples[name] = example
+                else:
+                    results[name]["inverse"] = section
             results[name]["description"] = what
             results[name]["particles"] = [int(p.shape[1]) for p, _ in condition.trajectories]
         return dict(settings=settings, conditions=results), examples
 
-    def run(self, methods, condition) -> tuple[dict, dict]:
-        """Every method on every trajectory of one condition: its metrics, and the first
-        trajectory's frame at each method's break (or its last) for the picture."""
+    def rollout(self, method, condition, index: int, direction: str) -> tuple[Tensor, Tensor, Tensor, int, int]:
+        """One rollout of test trajectory ``index``: ``(predicted, truth, before, first, sign)``,
+        the predicted and true frames ``[L, N, D]`` of its steps, the true frame it started from
+        ``[N, D]``, and the frame of step ``s`` being ``first + sign * s``. Forward: from frame
+        ``start``; inverse: back from the trajectory's last frame, the truth run backwards."""
+        position, particle_type = condition.trajectories[index]
+        if direction == "forward":
+            length = min(self.steps, len(position) - 1 - condition.start)
+            truth = position[condition.start + 1 : condition.start + 1 + length]
+            return (method.forward_rollout(condition, index, length), truth, position[condition.start],
+                    condition.start + 1, 1)
+        end = len(position) - 1
+        length = min(self.steps, end)
+        truth = position[end - length : end].flip(0)  # frames end-1, end-2, .., end-length
+        return inverse_rollout(method, position, particle_type, end, length), truth, position[end], end - 1, -1
+
+    def run(self, methods, condition, direction: str = "forward") -> tuple[dict, dict, dict]:
+        """Every method on every trajectory of one condition in one direction: its metrics (and, in
+        the inverse, the methods without an inverse and why), the first trajectory's frame at
+        each method's break (or its last) for the forward picture, and each broken method's state
+        at its first break over the trajectories (:func:`break_picture`'s ``breaks``)."""
         radius = float(condition.metadata["default_connectivity_radius"])
         bounds = condition.bounds
-        rows, example = {}, dict(truth={}, predicted={}, particle_type=condition.trajectories[0][1].cpu(),
-                                 bounds=bounds.cpu())
+        rows, without, breaks = {}, {}, {}
+        example = dict(truth={}, predicted={}, particle_type=condition.trajectories[0][1].cpu(), bounds=bounds.cpu())
         for method in methods:
-            per = []
+            if direction == "inverse" and (why := no_inverse(method)):
+                without[method.label] = why
+                continue
+            per, broken = [], []
             for i, (position, particle_type) in enumerate(condition.trajectories):
-                length = min(self.steps, len(position) - 1 - condition.start)
-                truth = position[condition.start + 1 : condition.start + 1 + length]
                 with in_box(method.model, bounds), torch.no_grad():
-                    predicted = method.forward_rollout(condition, i, length)
-                step, cause = classify_break(predicted, truth, particle_type, bounds, radius, self.rule,
-                                             before=position[condition.start])
+                    predicted, truth, before, first, sign = self.rollout(method, condition, i, direction)
+                length = len(truth)
+                step, cause = classify_break(predicted, truth, particle_type, bounds, radius, self.rule, before=before)
                 per_step = mse_per_step(predicted, truth)
                 moving = particle_type != KINEMATIC
                 per.append(dict(rollout_mse=finite(per_step.mean()), mse_per_step=[finite(v) for v in per_step],
                                 stable_steps=length if step is None else step, steps=length, break_step=step,
                                 cause=cause, density_end=density_ratio(predicted[-1, moving], truth[-1, moving], radius)))
+                if step is not None:
+                    broken.append(dict(step=step, cause=cause, trajectory=i, frame=first + sign * step,
+                                       predicted=predicted[step].cpu().numpy(), truth=truth[step].cpu().numpy(),
+                                       particle_type=particle_type.cpu().numpy()))
                 if i == 0:
                     at = length - 1 if step is None else step
                     example["predicted"][method.label] = (at, predicted[at].cpu().numpy())
                     example["truth"][method.label] = truth[at].cpu().numpy()
             rows[method.label] = _aggregate(per)
-        return dict(methods=rows), example
+            if broken:  # the one _aggregate names first_break
+                breaks[method.label] = min(broken, key=lambda b: (b["step"], b["cause"], b["trajectory"]))
+        section = dict(methods=rows)
+        if direction == "inverse":
+            section.update(from_frames=[len(p) - 1 for p, _ in condition.trajectories], without_inverse=without)
+        return section, example, breaks
 
 
 def _aggregate(per: list[dict]) -> dict:
