@@ -289,7 +289,8 @@ def goal_tables(results: dict) -> list[str]:
 
 def generalise_tables(results: dict) -> list[str]:
     """task=generalise: per dataset, each method on each condition: rollout MSE, stable steps and
-    what broke it first (over the condition's trajectories), and what each condition changed."""
+    what broke it first (over the condition's trajectories), and what each condition changed;
+    then the same backwards in time (:func:`generalise_inverse_table`) and the break pictures."""
     out = []
     for name, d in results["datasets"].items():
         section = d.get("generalise")
@@ -310,25 +311,63 @@ def generalise_tables(results: dict) -> list[str]:
             out += [section["note"], ""]
         conditions = section["conditions"]
         ran = [c for c, r in conditions.items() if "methods" in r]
+        backwards = [c for c, r in conditions.items() if "inverse" in r]
         out += [f"- {c}: {r.get('description') or r.get('skipped')}"
                 + (f" ({_span(r['particles'])} particles)" if r.get("particles") else "")
-                + ("" if c in ran else " (not run)") for c, r in conditions.items()]
+                + ("" if c in ran else " (backwards only)" if c in backwards else " (not run)")
+                for c, r in conditions.items()]
         labels = list(dict.fromkeys(label for c in ran for label in conditions[c]["methods"]))
         rows = []
         for label in labels:
             cells = [label]
             for c in ran:
                 row = conditions[c]["methods"].get(label)
-                if row is None:
-                    cells.append(GAP)
-                    continue
-                broke = row["first_break"]
-                cells.append(f"{number(row['rollout_mse'], 1e3)} / {row['stable_steps']}"
-                             + (f" ({broke['cause']} at {broke['step']})" if broke else ""))
+                cells.append(GAP if row is None else _break_cell(row))
             rows.append(cells)
         if ran:
             out += ["", table(["Method", *ran], rows)]
+        out += generalise_inverse_table(name, s, {c: conditions[c]["inverse"] for c in backwards}, labels)
+        pictures = [(c, direction, r["break_picture"]) for c in conditions
+                    for direction, r in (("forward", conditions[c]), ("inverse", conditions[c].get("inverse") or {}))
+                    if r.get("break_picture")]
+        if pictures:
+            out += ["", *(f"![{name}, {c}, {direction}: each method at its first break, beside the truth]({picture})"
+                          for c, direction, picture in pictures)]
     return out
+
+
+def _break_cell(row: dict) -> str:
+    """``rollout MSE (1e-3) / stable steps`` and the first break, ``(cause at step)``."""
+    broke = row["first_break"]
+    return (f"{number(row['rollout_mse'], 1e3)} / {row['stable_steps']}"
+            + (f" ({broke['cause']} at {broke['step']})" if broke else ""))
+
+
+def generalise_inverse_table(name: str, settings: dict, inverse: dict, order=()) -> list[str]:
+    """task=generalise backwards in time: per condition rolled back, each method with an inverse
+    (cells as forward), and those without one, named so; rows in ``order`` (the forward table's),
+    then any others."""
+    if not inverse:
+        return []
+    frames = sorted({f for r in inverse.values() for f in r["from_frames"]})
+    present = [label for r in inverse.values() for label in [*r["methods"], *r["without_inverse"]]]
+    labels = list(dict.fromkeys([*(label for label in order if label in present), *present]))
+    rows = []
+    for label in labels:
+        cells = [label]
+        for r in inverse.values():
+            row = r["methods"].get(label)
+            cells.append(_break_cell(row) if row is not None else "no inverse" if label in r["without_inverse"] else GAP)
+        rows.append(cells)
+    without = {label: why for r in inverse.values() for label, why in r["without_inverse"].items()}
+    return ["", f"### Backwards in time on {name}", "",
+            f"Every method with an inverse rolled back {settings['steps']} steps (fewer where a trajectory is shorter) "
+            f"from the last frame of each trajectory (frame {_span(frames)}), the truth run backwards as the reference, "
+            "its breaks named by the same rules: speeds are the distances between consecutive frames either way, so "
+            "exploded is a kinetic energy far above the true past's greatest and stalled an inferred past at rest "
+            "while the true past moves. Cells as above; step s is frame (last - 1 - s).", "",
+            table(["Method", *inverse], rows), "",
+            *(f"- {label}: no inverse ({why})" for label, why in without.items())]
 
 
 def _span(values: list[int]) -> str:
