@@ -245,7 +245,8 @@ def _nan(velocity, position, n):
 
 def _one_runs_off(velocity, position, n):
     velocity = velocity.clone()
-    velocity[0] = torch.tensor([0.05, 0.0])  # back in time p^{t-1} = p^t - v: particle 0 runs off to the left
+    velocity[0] = 0.0
+    velocity[0, 0] = 0.05  # back in time p^{t-1} = p^t - v: particle 0 runs off to the left
     return velocity
 
 

@@ -217,13 +217,12 @@ def _panel(ax, points: np.ndarray, kinematic: np.ndarray, low: np.ndarray, high:
     outside = ~np.isfinite(points).all(1) | ((points < shown_low) | (points > shown_high)).any(1)
     points = np.clip(np.nan_to_num(points, nan=shown_low[0]), shown_low, shown_high)
     colours = np.where(outside, "tab:red", np.where(kinematic, "0.75", colour))
-    ax.scatter(points[:, 0], points[:, 1], s=1.5, c=colours, clip_on=False)
+    ax.scatter(points[:, 0], points[:, 1], s=np.where(outside, 8.0, 1.5), c=colours, clip_on=False)
     ax.add_patch(plt.Rectangle(low, *(high - low), fill=False, lw=0.6, ec="0.3"))
     ax.set_xlim(shown_low[0], shown_high[0])
     ax.set_ylim(shown_low[1], shown_high[1])
     ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
+    ax.set_axis_off()
     ax.set_title(title + (f"\n{int(outside.sum())} off the chart" if outside.any() else ""), fontsize=7)
 
 
@@ -245,7 +244,8 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
     columns = per_method * min(len(breaks), methods_a_row)
     rows = math.ceil(len(breaks) / methods_a_row)
     sizes = [(bounds[v, 1] - bounds[v, 0]) / (bounds[h, 1] - bounds[h, 0]) for h, v, _ in views]
-    fig, axes = plt.subplots(rows, columns, figsize=(2.3 * columns, 2.3 * rows * max(sizes) + 0.8), squeeze=False)
+    fig, axes = plt.subplots(rows, columns, figsize=(2.3 * columns, rows * (2.3 * max(sizes) + 0.7) + 0.4),
+                             squeeze=False)
     for ax in axes.flat:
         ax.set_axis_off()
     axis_names = "xyz"
@@ -253,14 +253,13 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
         kinematic = np.asarray(broke["particle_type"]) == KINEMATIC
         row, first = divmod(m, methods_a_row)
         for v, (h, u, name) in enumerate(views):
-            seen = f", {name} ({axis_names[h]}-{axis_names[u]})" if name else ""
+            seen = f"\n{name} ({axis_names[h]}-{axis_names[u]})" if name else ""
             low, high = bounds[[h, u], 0], bounds[[h, u], 1]
             for p, (who, points, colour) in enumerate((
                     (f"{label}\ntrajectory {broke['trajectory']}, step {broke['step'] + 1}: {broke['cause']}{seen}",
                      broke["predicted"], "tab:blue"),
                     (f"truth, frame {broke['frame']}{seen}", broke["truth"], "0.3"))):
                 ax = axes[row, first * per_method + 2 * v + p]
-                ax.set_axis_on()
                 _panel(ax, np.asarray(points, dtype=float)[:, [h, u]], kinematic, low, high, colour, who)
     fig.suptitle(title, fontsize=9)
     save_figure(fig, path)
