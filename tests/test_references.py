@@ -149,15 +149,69 @@ def test_coarser_grids_take_substeps_in_proportion_and_the_floor_starts_perturbe
           f"ratio {ratio:.2f}")
 
 
-def test_sph_dataset_gets_only_the_floor(tmp_path_factory):
+def test_sph_dataset_gets_coarser_time_steps_and_the_floor(tmp_path_factory):
     sph = tiny("dambreak_sph", tmp_path_factory, frames=4, test=1)
     dataset = load(sph)
-    references, note = SolverReferences()(dataset)
-    assert [r.label for r in references] == ["SPH floor (1e-4 m)"]
-    assert "SPH has no grid to coarsen" in note and "no coarser re-runs" in note
-    run = references[0].trajectory(dataset, 0, 3)
+    references, note = SolverReferences()(dataset)  # 25 substeps stored: 0.5 -> 13, 0.75 -> 19
+    assert [r.label for r in references] == ["SPH 13 substeps", "SPH 19 substeps", "SPH floor (1e-4 m)"]
+    assert note is None
+    coarse = references[0].settings
+    assert (coarse["substeps"], coarse["sound_speed"], coarse["viscosity"]) == pytest.approx((13, 13.0, 0.05 * 25 / 13))
+    run = references[-1].trajectory(dataset, 0, 3)  # the floor
     assert run.shape == dataset.trajectories[0][0][:3].shape and 0 < mse(run, dataset.trajectories[0][0][:3]) < 1e-7
 
+
+
+@pytest.fixture(scope="module")
+def water3d(tmp_path_factory) -> Path:
+    """A tiny ``water3d`` (WCSPH in 3D, 20 substeps, c = 25 m/s): 30-120 particles, 14 frames."""
+    cfg = scene_config("water3d")
+    cfg.update(splits={"train": 1, "valid": 1, "test": 1}, particles=[30, 120], body_size=[0.06, 0.1])
+    return generate_dataset(cfg, tmp_path_factory.mktemp("water3d") / "water3d", num_frames=FRAMES, seed=3,
+                            workers=1, progress=False)
+
+
+def test_water3d_rerun_at_the_stored_substeps_reproduces_it_and_coarser_ones_keep_cfl_and_viscosity(water3d):
+    dataset = load(water3d)
+    position = dataset.trajectories[0][0]
+    assert position.shape[-1] == 3
+    (exact,), note = SolverReferences(resolutions=[1.0], floor_perturbation=None)(dataset)
+    assert note is None and exact.label == "SPH 20 substeps"
+    assert exact.settings["sound_speed"] == 25.0 and exact.settings["viscosity"] == 0.05
+    torch.testing.assert_close(exact.trajectory(dataset, 0, len(position)), position, atol=0, rtol=0)
+    references, note = SolverReferences()(dataset)  # the defaults of conf/evaluate.yaml
+    assert note is None
+    assert [r.label for r in references] == ["SPH 10 substeps", "SPH 15 substeps", "SPH floor (1e-4 m)"]
+    for reference in references[:2]:
+        solver = reference.scene.solver
+        assert solver.dt * solver.sound_speed == pytest.approx(0.005 / 20 * 25.0)  # the CFL number as stored
+        assert solver.alpha * solver.sound_speed == pytest.approx(0.05 * 25.0)  # the modelled viscosity as stored
+        assert solver.spacing == 0.022 and solver.h == exact.scene.solver.h  # the same particles and kernel
+
+
+def test_water3d_dataset_gets_every_yardstick(water3d, tmp_path, monkeypatch):
+    """evaluate.py on a 3D SPH dataset: constant velocity, ballistic with walls, the solver coarser
+    in time and the predictability floor, beside a stand-in for a trained checkpoint."""
+    cfg = stand_in_config(water3d, monkeypatch, ["task=forward", f"output_dir={tmp_path}", "trajectories=1",
+                                                 "task.forward.distribution_steps=[1]", "task.efficiency.repeats=1",
+                                                 "task.efficiency.memory=false", "animation.max_frames=3"])
+    data = evaluate(cfg)["datasets"][water3d.name]
+    solvers = ["SPH 10 substeps", "SPH 15 substeps", "SPH floor (1e-4 m)"]
+    forward, cost = data["forward"]["methods"], data["efficiency"]["methods"]
+    assert list(forward) == ["GNS 8x1", "Const. velocity", "Ballistic + walls", *solvers]
+    assert list(data["references"]["methods"]) == solvers and data["references"]["note"] is None
+    for label in forward:
+        assert np.isfinite(forward[label]["rollout_mse"]) and forward[label]["rollout_mse"] > 0, label
+    for label in solvers:
+        assert cost[label]["forward_ms_per_step"] > 0 and cost[label]["parameters"] == 0
+        assert data["references"]["methods"][label]["frames_per_trajectory"] == {"0": FRAMES - 1}
+    assert forward["Ballistic + walls"]["rollout_mse"] < forward["Const. velocity"]["rollout_mse"]  # gravity along -y
+    # a ladder: the coarser in time, the further from the stored run; all closer to it than the baselines
+    assert forward["SPH 10 substeps"]["rollout_mse"] > forward["SPH 15 substeps"]["rollout_mse"]
+    assert forward["SPH 10 substeps"]["rollout_mse"] < forward["Ballistic + walls"]["rollout_mse"]
+    report = (tmp_path / "report.md").read_text()
+    assert "SPH 10 substeps: the dataset's solver (rgns.physics.sph.SPHSolver) re-run from the same initial " \
+           "states with 10 substeps per frame, sound speed 12.5 m/s and viscosity alpha 0.1" in report
 
 def test_datasets_without_a_rebuildable_generator_get_no_solver_and_say_why(generated):
     converted = Dataset("converted", "", make_metadata(), load(generated).trajectories, start=HISTORY)

@@ -16,9 +16,15 @@ again (checked against the stored frame 0), and the solver run again:
   ``floor_perturbation`` metres (a fixed seed): the predictability floor, how far two solver runs
   that differ by that much drift apart.
 
-A solver without a grid (SPH: its resolution is the particle spacing, which also sets the
-initial state) gets only the floor. A dataset without a generator (converted from DeepMind's
-files) or whose scene cannot be rebuilt gets none, with a sentence that says why.
+A solver without a grid (SPH) cannot be coarsened in space: its resolution is the particle
+spacing, which also sets the initial state, and the particles are what is compared. Its coarser
+re-runs are coarser in time instead (:func:`sph_coarse_settings`): ``resolutions`` are fractions
+of the stored substeps, the sound speed lowered in proportion so that the CFL limit
+(``0.25 h / c``) holds as it did, and Monaghan's ``alpha`` raised in inverse proportion so that the
+viscosity it models (``~ alpha c h``) stays the same: the same particles and equations, only
+more compressible, as WCSPH is made cheaper in practice. At 1.0 the re-run is the stored one.
+A dataset without a generator (converted from DeepMind's files) or whose scene cannot be rebuilt
+gets none, with a sentence that says why.
 
 Each reference runs the solver from frame 0 (Taichi on one CPU thread) and is compared on the
 learned models' window, frames ``t0 + 1 .. t0 + steps``; kinematic particles (obstacles) take
@@ -53,6 +59,14 @@ def grid_substeps(n_grid: int, stored_n_grid: int, stored_substeps: int) -> int:
     """Substeps per frame for a grid of ``n_grid`` cells/m: the stored ones scaled with the grid
     (the CFL limit on the substep scales with the cell size), rounded up, at least 1."""
     return max(1, math.ceil(stored_substeps * n_grid / stored_n_grid - 1e-9))
+
+
+def sph_coarse_settings(substeps: int, stored_substeps: int, sound_speed: float, viscosity: float) -> dict:
+    """WCSPH with ``substeps`` per frame instead of ``stored_substeps``: the stored ``sound_speed``
+    scaled by their ratio (the CFL limit on the substep, ``0.25 h / c``, holds as it did) and
+    ``viscosity`` (Monaghan's alpha) by its inverse (``alpha c``, the viscosity it models, unchanged)."""
+    return dict(substeps=substeps, sound_speed=sound_speed * substeps / stored_substeps,
+                viscosity=viscosity * stored_substeps / substeps)
 
 
 class SolverReference:
@@ -162,7 +176,8 @@ class SolverReferences:
 
     Args:
         resolutions: grids to re-run at, as fractions of the stored ``n_grid`` (0.5 and 0.75 of
-            64 cells/m: 32 and 48); solvers without a grid skip them.
+            64 cells/m: 32 and 48); for SPH, fractions of the stored substeps (0.5 and 0.75 of 20:
+            10 and 15, see :func:`sph_coarse_settings`).
         floor_perturbation: std (m) of the noise on the initial positions of the floor's re-run
             at the stored resolution; ``None``: no floor.
         seed: of that noise.
@@ -221,9 +236,19 @@ class SolverReferences:
                     f"the dataset's solver ({solver['_target_']}) re-run from the same initial states at {n_grid} "
                     f"cells/m with {substeps} substeps per frame (stored: {stored['n_grid']} cells/m, "
                     f"{stored['substeps']} substeps)."))
+        elif {"substeps", "sound_speed", "viscosity"} <= set(stored):  # SPH: coarser in time
+            for substeps in dict.fromkeys(max(1, math.ceil(f * stored["substeps"] - 1e-9)) for f in self.resolutions):
+                coarse = sph_coarse_settings(substeps, stored["substeps"], stored["sound_speed"], stored["viscosity"])
+                references.append(SolverReference(
+                    f"{name} {coarse['substeps']} substeps", rebuilt(**coarse), initial_states,
+                    dict(common, **coarse, perturbation=None),
+                    f"the dataset's solver ({solver['_target_']}) re-run from the same initial states with "
+                    f"{coarse['substeps']} substeps per frame, sound speed {coarse['sound_speed']:g} m/s and "
+                    f"viscosity alpha {coarse['viscosity']:g} (stored: {stored['substeps']}, {stored['sound_speed']:g} "
+                    f"m/s, {stored['viscosity']:g}): coarser in time, its particles those of the dataset, the CFL "
+                    f"limit and the modelled viscosity as stored."))
         elif self.resolutions:
-            notes.append(f"{name} has no grid to coarsen (its resolution is the particle spacing, which also sets the "
-                         "initial state): no coarser re-runs.")
+            notes.append(f"{name} has neither a grid nor substeps to coarsen: no coarser re-runs.")
         if self.floor_perturbation:
             references.append(SolverReference(
                 f"{name} floor ({metres(self.floor_perturbation)} m)", scene, initial_states,
