@@ -314,9 +314,9 @@ def record(results: dict, label: str | None, source: str) -> dict:
         raise ValueError(f"{source}: no method {label!r} on {name} (there: {', '.join(data.get('summary', {}))})")
     info, row = results["methods"].get(label, {}), data["summary"][label]
     out = dict(label=label, source=info.get("source", source), seed=info.get("seed"), global_step=info.get("global_step"),
-               dataset=name, **{k: row.get(k) for k in (
+               dataset=name, **{k: row[k] for k in (  # absent: not measured (a forward-only model's inverse)
                    "rollout_mse", "stable_steps", "diverged", "parameters", "forward_ms_per_step", "memory_mb",
-                   "consistency_mse", "inverse_mse", "max_stable_steps", "stable_beyond_tested")})
+                   "consistency_mse", "inverse_mse", "max_stable_steps", "stable_beyond_tested") if k in row})
     forward = data.get("forward", {}).get("settings", {})
     out.update(trajectories=forward.get("trajectories"), steps=forward.get("steps"), start=forward.get("start"))
     comparison = data.get("inverse_optimisation")
@@ -390,7 +390,8 @@ def method_entry(patterns, results_of) -> dict:
     entry.update(labels=sorted({r["label"] for r in records}), seeds=seeds,
                  repeated_seeds=len([s for s in seeds if s is not None]) != len({s for s in seeds if s is not None}))
     for key in ("rollout_mse", "parameters", "forward_ms_per_step", "memory_mb", "consistency_mse", "inverse_mse"):
-        entry[key] = statistics([r.get(key) for r in records]) if any(key in r for r in records) else None
+        measured = [r[key] for r in records if key in r]
+        entry[key] = statistics(measured) if measured else None
     feed_forward = [r["inverse_optimisation"] for r in records if "inverse_optimisation" in r]
     if feed_forward:
         entry["inverse_optimisation"] = dict(
@@ -743,7 +744,7 @@ def main(argv: list[str] | None = None) -> dict:
     try:
         manifest = compose_config("paper", argv)
     except HydraException as error:  # a bad override: one line naming it
-        raise SystemExit(f"error: conf/paper.yaml with {' '.join(argv)}: {' '.join(str(error).split())}") from None
+        raise SystemExit(f"error: conf/paper.yaml: {' '.join(str(error).split())}") from None
     paper = build(manifest, argv)
     out = Path(manifest.out_dir)
     write(paper, manifest, out)
