@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from rgns.data.contract import KINEMATIC, SPLITS, WATER, write_metadata, write_split
+from rgns.models import State
 
 torch.set_num_threads(1)
 
@@ -33,6 +34,29 @@ def random_trajectory(rng: np.random.Generator, frames: int = 20, particles: int
     particle_type = np.full(particles, WATER, dtype=np.int64)
     particle_type[particles - kinematic :] = KINEMATIC
     return position, particle_type
+
+
+def random_state(particles: int = 60, dim: int = 2, kinematic: int = 0, seed: int = 0, low: float = 0.15,
+                 span: float = 0.7, history: int = 5) -> State:
+    """A model input: particles uniform in ``[low, low + span]^D`` with small random velocities
+    (``history`` of them); the last ``kinematic`` particles are type 3 and at rest."""
+    generator = torch.Generator().manual_seed(seed)
+    position = low + span * torch.rand(particles, dim, generator=generator)
+    velocity = 2e-3 * torch.randn(particles, history, dim, generator=generator)
+    particle_type = torch.full((particles,), WATER)
+    particle_type[particles - kinematic:] = KINEMATIC
+    velocity[particle_type == KINEMATIC] = 0.0
+    return State(position, velocity, particle_type)
+
+
+def perturb(module: torch.nn.Module, scale: float = 0.1, seed: int = 0) -> torch.nn.Module:
+    """Every parameter moved off its initialisation by ``scale`` times a standard normal draw
+    (R-GNS starts as the identity map); returns the module."""
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for parameter in module.parameters():
+            parameter.add_(scale * torch.randn(parameter.shape, generator=generator))
+    return module
 
 
 @pytest.fixture

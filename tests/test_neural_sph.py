@@ -11,7 +11,8 @@ import torch
 from omegaconf import OmegaConf
 from torch_geometric.data import Batch
 
-from conftest import make_metadata, train_steps
+from conftest import make_metadata, perturb, train_steps
+from conftest import random_state as shared_random_state
 from rgns import config_dir
 from rgns.data.contract import KINEMATIC, WATER, open_split
 from rgns.data.graph import radius_graph
@@ -48,20 +49,7 @@ def walled_lattice(fluid: int, wall: int, dim: int) -> tuple[torch.Tensor, torch
 
 
 def random_state(particles: int = 60, dim: int = 2, kinematic: int = 6, seed: int = 0) -> State:
-    generator = torch.Generator().manual_seed(seed)
-    position = 0.15 + 0.7 * torch.rand(particles, dim, generator=generator)
-    velocity = 2e-3 * torch.randn(particles, K, dim, generator=generator)
-    particle_type = torch.full((particles,), WATER)
-    particle_type[particles - kinematic:] = KINEMATIC
-    velocity[particle_type == KINEMATIC] = 0.0
-    return State(position, velocity, particle_type)
-
-
-def perturb(module: torch.nn.Module, scale: float = 0.1, seed: int = 0) -> None:
-    generator = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for parameter in module.parameters():
-            parameter.add_(scale * torch.randn(parameter.shape, generator=generator))
+    return shared_random_state(particles, dim, kinematic, seed, history=K)
 
 
 # ---- the kernel -------------------------------------------------------------------------------

@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import perturb
+from conftest import random_state as shared_random_state
 from rgns.bench.step import reference_next_velocity, reference_step
-from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.graph import NeighbourList, batched_radius_graph, radius_graph
 from rgns.errors import ConfigError
 from rgns.models import GNS, RGNS, State
@@ -30,22 +31,11 @@ def metadata(dim: int = 2, radius: float = 0.1) -> dict:
 
 
 def random_state(particles: int = 70, dim: int = 2, kinematic: int = 0, seed: int = 0) -> State:
-    generator = torch.Generator().manual_seed(seed)
-    position = 0.12 + 0.76 * torch.rand(particles, dim, generator=generator)
-    velocity = 2e-3 * torch.randn(particles, K, dim, generator=generator)
-    particle_type = torch.full((particles,), WATER)
-    particle_type[particles - kinematic:] = KINEMATIC
-    velocity[particle_type == KINEMATIC] = 0.0
-    return State(position, velocity, particle_type)
+    return shared_random_state(particles, dim, kinematic, seed, low=0.12, span=0.76, history=K)
 
 
 def trained_like(model: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
-    """Every parameter moved off its initialisation (R-GNS starts as the identity map)."""
-    generator = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for parameter in model.parameters():
-            parameter.add_(0.1 * torch.randn(parameter.shape, generator=generator))
-    return model.eval()
+    return perturb(model, seed=seed).eval()
 
 
 MODELS = {
