@@ -8,12 +8,24 @@
 # Two training processes run side by side, one thread each (a 2-core machine): R-GNS then Sep-GNS
 # on one, GNS on the other, each with a step budget that fits its share of the time (capped by
 # trainer.max_time as well). Every phase's wall time goes to <out>/timing.md.
-# Usage: bash scripts/main.sh [extra train.py overrides for every model, e.g. seed=1]
+# Usage: bash scripts/main.sh [BENCHMARK] [extra train.py overrides for every model, e.g. seed=1]
+#   BENCHMARK: waterdrop (the default scene; outputs/main/<time>/) or another scene of conf/scene --
+#   waterramps, water3d, sand -- trained the same way on its own datasets/<BENCHMARK>40_main
+#   (outputs/main_<BENCHMARK>/<time>/; the layout conf/paper.yaml reads)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+benchmark=waterdrop
+if [[ $# -gt 0 && $1 != *=* ]]; then benchmark=$1; shift; fi
+if [[ ! -f conf/scene/$benchmark.yaml || $benchmark == *_full ]]; then
+  echo "scripts/main.sh: no benchmark '$benchmark': conf/scene/$benchmark.yaml is not a training scene" \
+    "(one of: $(ls conf/scene | sed -n 's/\.yaml$//p' | grep -v _full | paste -sd' ' -))" >&2
+  exit 2
+fi
 bash scripts/setup.sh
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONWARNINGS=ignore
-out="outputs/main/$(date +%Y-%m-%d_%H-%M-%S)"
+data="datasets/${benchmark}40_main"
+if [[ $benchmark == waterdrop ]]; then runs=outputs/main; else runs="outputs/main_$benchmark"; fi
+out="$runs/$(date +%Y-%m-%d_%H-%M-%S)"
 mkdir -p "$out/train"
 timing="$out/timing.md"
 phase_start=$SECONDS
@@ -23,9 +35,9 @@ phase() {  # phase NAME: the wall time since the previous phase ended
 }
 printf '| phase | wall time |\n|---|---|\n' > "$timing"
 
-echo "== 1/3 default dataset: datasets/waterdrop40_main (the waterdrop scene, 32/8/8 trajectories)"
-.venv/bin/python -m rgns.data.generate scene=waterdrop num_trajectories=32 splits.valid=8 splits.test=8 \
-  out_dir=datasets/waterdrop40_main
+echo "== 1/3 dataset: $data (the $benchmark scene, 32/8/8 trajectories)"
+.venv/bin/python -m rgns.data.generate scene="$benchmark" num_trajectories=32 splits.valid=8 splits.test=8 \
+  out_dir="$data"
 phase "dataset (generated, or found complete)"
 
 # model, its steps and its time cap; the budgets come from docs/main_job.md's measurements
@@ -34,7 +46,8 @@ train() {  # train FOLDER MODEL STEPS CAP [EXPERIMENT] [overrides]: experiment=m
   [[ ${1:-} == experiment=* ]] && { experiment=${1#experiment=}; shift; }
   # into a log file: progress lines (callbacks.time_split) instead of a progress bar redrawn every step
   .venv/bin/python train.py experiment="$experiment" model="$model" trainer.max_steps="$steps" trainer.max_time="$cap" \
-    trainer.enable_progress_bar=false hydra.run.dir="$out/$folder/$model" "$@" > "$out/$folder/$model.log" 2>&1
+    trainer.enable_progress_bar=false data.root="$data" data.make_root="$data" data.make.scene="$benchmark" \
+    hydra.run.dir="$out/$folder/$model" "$@" > "$out/$folder/$model.log" 2>&1
 }
 # the second stage of R-GNS and GNS (conf/experiment/main_stage.yaml): from the base run's best
 # checkpoint, pushes of up to 40 steps, the loss unrolled through 6, the density term
@@ -85,14 +98,19 @@ echo "== 3/3 evaluation -> $out/evaluation"
 # (without_hard_walls=fresh: their twins would cost about a minute of the 25); data_root: this
 # checkout's dataset for all of them (a checkpoint records the absolute dataset path of the machine
 # that trained it; the generator makes the same bytes everywhere)
-pretrained=$(ls pretrained/waterdrop40_main_64/{rgns,gns}.ckpt pretrained/waterdrop40_main/{rgns_forward_only,sep_gns}.ckpt \
-  2>/dev/null | paste -sd, - || true)
+# (another benchmark: its files under pretrained/<benchmark>/, where there are any)
+if [[ $benchmark == waterdrop ]]; then
+  pretrained=$(ls pretrained/waterdrop40_main_64/{rgns,gns}.ckpt pretrained/waterdrop40_main/{rgns_forward_only,sep_gns}.ckpt \
+    2>/dev/null | paste -sd, - || true)
+else
+  pretrained=$(ls pretrained/"$benchmark"/*.ckpt 2>/dev/null | paste -sd, - || true)
+fi
 .venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best trajectories=8 workers=2 \
   'task.inverse.horizons=[1,5,20,40]' "pretrained=[$pretrained]" without_hard_walls=fresh \
-  data_root=datasets/waterdrop40_main hydra.run.dir="$out/evaluation"
+  data_root="$data" hydra.run.dir="$out/evaluation"
 phase "evaluation"
 
-ln -sfn "$(basename "$out")" outputs/main/latest
-echo "Report: $out/evaluation/report.md (also outputs/main/latest/evaluation/report.md)"
+ln -sfn "$(basename "$out")" "$runs/latest"
+echo "Report: $out/evaluation/report.md (also $runs/latest/evaluation/report.md)"
 echo "Time per phase: $timing"
 echo "TensorBoard: .venv/bin/tensorboard --logdir $out/train"

@@ -148,3 +148,34 @@ def test_training_benchmark_measures_the_main_jobs_models():
     for overrides in main_job_runs():
         model = overrides[1].split("=")[1]
         assert MAIN_OVERRIDES[model] == [o for o in overrides[5:] if o.startswith("model.")], model
+
+
+def test_main_job_refuses_a_benchmark_it_has_no_scene_for():
+    """`bash scripts/main.sh BENCHMARK` names the scenes it knows and stops before any set-up."""
+    import subprocess
+    from pathlib import Path
+
+    script = Path(__file__).parents[1] / "scripts" / "main.sh"
+    for name in ("waterdrops", "water3d_full"):
+        done = subprocess.run(["bash", str(script), name, "seed=1"], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2, done.stderr
+        assert f"no benchmark '{name}'" in done.stderr and "waterramps" in done.stderr and "water3d " in done.stderr
+
+
+@pytest.mark.parametrize("benchmark,dim", [("waterdrop", 2), ("waterramps", 2), ("water3d", 3), ("sand", 2)])
+def test_main_job_trains_each_benchmark_on_its_own_scene(tmp_path, benchmark, dim):
+    """With the data overrides scripts/main.sh gives every run, the DataModule reads and makes the
+    benchmark's own dataset from the benchmark's own scene."""
+    from pathlib import Path
+
+    from rgns.data.generate import scene_config
+
+    assert 'data.root="$data" data.make_root="$data" data.make.scene="$benchmark"' in (
+        Path(__file__).parents[1] / "scripts" / "main.sh").read_text()
+    data = tmp_path / f"{benchmark}40_main"
+    cfg = train_cfg(tmp_path, "experiment=main", f"data.root={data}", f"data.make_root={data}",
+                    f"data.make.scene={benchmark}")
+    datamodule = instantiate(cfg.data)
+    assert Path(datamodule.root) == data and datamodule.make is not None
+    scene = scene_config(datamodule.make.keywords["scene"])
+    assert scene["name"] == benchmark and scene["dim"] == dim
