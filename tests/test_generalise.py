@@ -307,7 +307,8 @@ def test_a_planted_failure_backwards_is_named_at_its_step(plant, at, cause, step
     if cause == "compressed":
         inferred = torch.as_tensor(breaks["planted"]["predicted"])
         truth = lattice_dataset().trajectories[0][0]
-        assert densest_cells(inferred[None], BOUNDS[:, 0], RADIUS)[0] > 3 * int(densest_cells(truth, BOUNDS[:, 0], RADIUS).max())
+        densest_truth = int(densest_cells(truth, BOUNDS[:, 0], RADIUS).max())
+        assert densest_cells(inferred[None], BOUNDS[:, 0], RADIUS)[0] > 3 * densest_truth
     assert row["stable_steps"] == row["first_break"]["step"] and row["steps"] == 60
     broke = breaks["planted"]
     assert broke["frame"] == 80 - 1 - broke["step"] and broke["cause"] == cause  # step s is frame end - 1 - s

@@ -170,7 +170,8 @@ def inverse_rollout(method, position: Tensor, particle_type: Tensor, end: int, s
     """
     model, stride = method.model, stride_of(method)
     if not 1 <= steps <= end:
-        raise ValueError(f"{steps} inverse steps back from frame {end}: between 1 and {end} (the truth stops at frame 0)")
+        raise ValueError(f"{steps} inverse steps back from frame {end}: between 1 and {end} "
+                         "(the truth stops at frame 0)")
     phase = position[end % stride :: stride]  # frame end - s j is entry last - j
     last, n, k = end // stride, math.ceil(steps / stride), model.history
     if last < k:
@@ -388,7 +389,8 @@ class Generalisation:
                 picture = f"generalise_{dataset.name}_{name}_{direction}_breaks.png"
                 title = (f"{dataset.name}, {name}, {direction}: each method that broke, at its first break over the "
                          "trajectories, beside the truth at that frame")
-                drawn = break_picture(breaks, condition.bounds, up_axis(condition.metadata), title, self.out_dir / picture)
+                up = up_axis(condition.metadata)
+                drawn = break_picture(breaks, condition.bounds, up, title, self.out_dir / picture)
                 section["break_picture"] = picture if drawn else None
                 if direction == "forward":
                     results[name].update(section)
@@ -436,9 +438,10 @@ class Generalisation:
                 step, cause = classify_break(predicted, truth, particle_type, bounds, radius, self.rule, before=before)
                 per_step = mse_per_step(predicted, truth)
                 moving = particle_type != KINEMATIC
+                density_end = density_ratio(predicted[-1, moving], truth[-1, moving], radius)
                 per.append(dict(rollout_mse=finite(per_step.mean()), mse_per_step=[finite(v) for v in per_step],
                                 stable_steps=length if step is None else step, steps=length, break_step=step,
-                                cause=cause, density_end=density_ratio(predicted[-1, moving], truth[-1, moving], radius)))
+                                cause=cause, density_end=density_end))
                 if step is not None:
                     broken.append(dict(step=step, cause=cause, trajectory=i, frame=first + sign * step,
                                        predicted=predicted[step].cpu().numpy(), truth=truth[step].cpu().numpy(),
