@@ -357,12 +357,14 @@ def generalise_inverse_table(name: str, settings: dict, inverse: dict, order=())
         cells = [label]
         for r in inverse.values():
             row = r["methods"].get(label)
-            cells.append(_break_cell(row) if row is not None else "no inverse" if label in r["without_inverse"] else GAP)
+            missing = "no inverse" if label in r["without_inverse"] else GAP
+            cells.append(missing if row is None else _break_cell(row))
         rows.append(cells)
     without = {label: why for r in inverse.values() for label, why in r["without_inverse"].items()}
     return ["", f"### Backwards in time on {name}", "",
             f"Every method with an inverse rolled back {settings['steps']} steps (fewer where a trajectory is shorter) "
-            f"from the last frame of each trajectory (frame {_span(frames)}), the truth run backwards as the reference, "
+            f"from the last frame of each trajectory (frame {_span(frames)}), the truth run backwards as the "
+            "reference, "
             "its breaks named by the same rules: speeds are the distances between consecutive frames either way, so "
             "exploded is a kinetic energy far above the true past's greatest and stalled an inferred past at rest "
             "while the true past moves. Cells as above; step s is frame (last - 1 - s).", "",
