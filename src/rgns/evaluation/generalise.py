@@ -232,7 +232,7 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
     ``path`` (PNG); ``False``, and no file, where no method broke.
 
     ``breaks``: ``{label: {"step", "cause", "trajectory", "frame", "predicted" [N, D], "truth"
-    [N, D], "particle_type" [N]}}``. A 2D scene: a pair of panels (method, truth) per method, three
+    [N, D], "particle_type" [N]}}``, the step 0-based as in the tables. A 2D scene: a pair of panels (method, truth) per method, three
     methods a row; a 3D scene: a row per method, the pair seen from the front (the first horizontal
     axis against the ``up`` axis) and from above. Moving particles blue (the method's) or dark
     grey (the truth's), kinematic ones light grey."""
@@ -257,8 +257,8 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
             seen = f"\n{name} ({axis_names[h]}-{axis_names[u]})" if name else ""
             low, high = bounds[[h, u], 0], bounds[[h, u], 1]
             for p, (who, points, colour) in enumerate((
-                    (f"{label}\ntrajectory {broke['trajectory']}, step {broke['step'] + 1}: {broke['cause']}{seen}",
-                     broke["predicted"], "tab:blue"),
+                    (f"{label}\ntrajectory {broke['trajectory']}, step {broke['step']} (frame {broke['frame']}): "
+                     f"{broke['cause']}{seen}", broke["predicted"], "tab:blue"),
                     (f"truth, frame {broke['frame']}{seen}", broke["truth"], "0.3"))):
                 ax = axes[row, first * per_method + 2 * v + p]
                 _panel(ax, np.asarray(points, dtype=float)[:, [h, u]], kinematic, low, high, colour, who)
