@@ -280,12 +280,20 @@ def inverse_break(plant, at: int, steps: int = 60, dataset: Dataset | None = Non
     return section["methods"]["planted"], breaks
 
 
-def test_the_inverse_rollout_of_an_exact_inverse_is_the_truth_backwards():
+@pytest.mark.parametrize("stride", [1, 3])
+def test_the_inverse_rollout_of_an_exact_inverse_is_the_truth_backwards(stride):
+    """Constant velocity is exact backwards on a drifting lattice, at any stride (a model trained
+    on every third frame steps back three frames at a time, the frames between filled in)."""
     dataset = lattice_dataset()
     position, particle_type = dataset.trajectories[0]
-    method = Method("exact", ConstantVelocity(dataset.metadata, HISTORY), None, "baseline")
+    model = Planted(dataset.metadata, _rest, at=10**6)  # constant velocity, never planted: counts its steps
+    method = Method("exact", model, None, "baseline", trained_metadata={"stride": stride})
     inferred = inverse_rollout(method, position, particle_type, end=80, steps=70)
     assert torch.allclose(inferred, position[10:80].flip(0), atol=1e-5)  # frames 79, 78, .., 10
+    assert model.calls == -(-70 // stride)  # steps of `stride` frames
+
+
+def test_an_exact_inverse_never_breaks():
     row, breaks = inverse_break(_rest, at=10**6)  # never planted
     assert row["first_break"] is None and row["stable_steps"] == 60 and breaks == {}
 
