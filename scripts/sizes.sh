@@ -1,0 +1,77 @@
+#!/usr/bin/env bash
+# The size sweep behind "model no more than a scene needs" (docs/benchmarks.md, `rgns.bench sizes`):
+# one model at six sizes (latent x layers) from 16x1 to the shipped ones, seeds 0-2, each trained as
+# the main job trains that model's base run (scripts/main.sh: experiment=main, its step budget and
+# time cap, its model overrides), then all evaluated on their dataset's test split (task=forward:
+# rollout MSE and ms per frame) and summarised by `python -m rgns.bench sizes`: per size the mean and
+# spread over the seeds, and the smallest size within FACTOR of the best mean.
+#
+# Usage: bash scripts/sizes.sh [rgns|gns] [extra train.py overrides for every run]
+# Environment (optional):
+#   SIZES="16x1 32x1 32x2 64x2 128x2 64x4"  SEEDS="0 1 2"  JOBS=2 (trainings at once: main.sh's two)
+#   STAGE=1     also each run's second stage, as main.sh does (experiment=main_stage from the base's
+#               best checkpoint); the staged runs are evaluated beside the bases, as sizes of their own
+#   FACTOR=1.5  EVALUATE="..." (extra evaluate.py overrides)  OUT=outputs/sizes/<model>/<time>
+# Runs that fail are named at the end (their logs: <out>/train/<size>_seed<seed>.log); the others are
+# still evaluated, and the script then exits 1.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+model=${1:-rgns}
+shift $(( $# > 0 ? 1 : 0 ))
+case $model in  # scripts/main.sh's base run of the model (the sweep sets the size)
+  rgns) steps=7500 cap=00:00:07:00 recipe=(model.memory_saving=false module.compile=true model.couplings=pairwise) ;;
+  gns) steps=15000 cap=00:00:11:00 recipe=(module.compile=true model.decoder=pairwise recipe=pushforward) ;;
+  *) echo "scripts/sizes.sh: the model is rgns or gns, not '$model'" >&2; exit 2 ;;
+esac
+read -r -a sizes <<< "${SIZES:-16x1 32x1 32x2 64x2 128x2 64x4}"
+read -r -a seeds <<< "${SEEDS:-0 1 2}"
+read -r -a evaluate <<< "${EVALUATE:-}"
+for size in "${sizes[@]}"; do
+  [[ $size =~ ^[0-9]+x[0-9]+$ ]] || { echo "scripts/sizes.sh: size '$size' is not LATENTxLAYERS (e.g. 32x2)" >&2; exit 2; }
+done
+out=${OUT:-outputs/sizes/$model/$(date +%Y-%m-%d_%H-%M-%S)}
+mkdir -p "$out/train"
+export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONWARNINGS=ignore
+
+train() {  # train SIZE SEED [overrides]: the base run, then (STAGE=1) its second stage
+  local size=$1 seed=$2; shift 2
+  local run="$out/train/${size}_seed$seed"
+  .venv/bin/python train.py experiment=main model="$model" model.latent="${size%x*}" model.layers="${size#*x}" \
+    seed="$seed" trainer.max_steps="$steps" trainer.max_time="$cap" trainer.enable_progress_bar=false \
+    "${recipe[@]}" hydra.run.dir="$run" "$@" > "$run.log" 2>&1 || return 1
+  [ "${STAGE:-0}" = 1 ] || return 0
+  local best
+  best=$(ls "$run"/checkpoints/best-step*.ckpt 2>/dev/null | head -n 1)
+  [ -n "$best" ] || { echo "no best-step*.ckpt in $run/checkpoints for the stage" >> "$run.log"; return 1; }
+  .venv/bin/python train.py experiment=main_stage model="$model" model.latent="${size%x*}" model.layers="${size#*x}" \
+    seed="$seed" trainer.max_steps=600 trainer.max_time=00:00:04:00 trainer.enable_progress_bar=false \
+    "${recipe[@]}" init_from="$best" hydra.run.dir="${run}_stage" "$@" > "${run}_stage.log" 2>&1
+}
+
+echo "== 1/2 training ${#sizes[@]} sizes x ${#seeds[@]} seeds of $model, ${JOBS:-2} at a time -> $out/train"
+declare -A running=()  # pid -> run name
+failed=()
+reap() {  # wait for one run to end and note it if it failed
+  local pid status=0
+  wait -n -p pid || status=$?
+  [ "$status" -eq 0 ] || failed+=("${running[$pid]}")
+  unset "running[$pid]"
+}
+for size in "${sizes[@]}"; do
+  for seed in "${seeds[@]}"; do
+    while [ "${#running[@]}" -ge "${JOBS:-2}" ]; do reap; done
+    train "$size" "$seed" "$@" &
+    running[$!]="${size}_seed$seed"
+  done
+done
+while [ "${#running[@]}" -gt 0 ]; do reap; done
+
+echo "== 2/2 evaluation -> $out/evaluation"
+.venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best task=forward trajectories=8 workers=2 \
+  without_hard_walls=false references=null hydra.run.dir="$out/evaluation" "${evaluate[@]}"
+.venv/bin/python -m rgns.bench sizes "$out/evaluation" --factor "${FACTOR:-1.5}" --json "$out/sizes.json" \
+  | tee "$out/sizes.md"
+if [ "${#failed[@]}" -gt 0 ]; then
+  echo "failed runs, left out above: ${failed[*]} (logs: $out/train/<run>.log)" >&2
+  exit 1
+fi
