@@ -115,3 +115,17 @@ def test_clear_errors(tmp_path):
     empty = write_results(tmp_path / "e" / "results.json", {})
     with pytest.raises(ValueError, match="no trained model's rollout MSE"):
         trained_runs(read_results([empty]))
+
+
+def test_the_sweep_trains_each_model_as_the_main_jobs_base_run():
+    """scripts/sizes.sh's step budget, time cap and overrides per model are scripts/main.sh's base
+    run's (read from main.sh by tests/test_config.py), the size aside."""
+    from test_config import main_job_runs
+
+    script = (Path(__file__).parents[1] / "scripts" / "sizes.sh").read_text()
+    for model, steps, cap, body in re.findall(r"^  (\w+)\) steps=(\d+) cap=(\S+) recipe=\(([^)]*)\) ;;", script, re.M):
+        base = next(r for r in main_job_runs() if r[:2] == ["experiment=main", f"model={model}"])
+        assert base[2:4] == [f"trainer.max_steps={steps}", f"trainer.max_time={cap}"], model
+        size = ("model.latent=", "model.layers=")
+        assert sorted(o for o in base[5:] if not o.startswith(size)) == sorted(body.split()), model
+    assert {"rgns", "gns"} <= set(re.findall(r"^  (\w+)\) steps=", script, re.M))
