@@ -499,6 +499,13 @@ def reasons(entries: dict, names: dict) -> list[str]:
             if entry.get("reason")]
 
 
+def seeds_text(seeds: list) -> str:
+    """``seeds 0, 1, 2``; ``seed not recorded`` for files without their run's config (shipped files)."""
+    if all(seed is None for seed in seeds):
+        return "seed not recorded" if len(seeds) == 1 else f"{len(seeds)} files, seeds not recorded"
+    return "seeds " + ", ".join("?" if seed is None else str(seed) for seed in seeds)
+
+
 def table_one(paper: dict, manifest: DictConfig) -> list[str]:
     methods = dict(manifest.methods)
     header = ["Benchmark (set)", *methods.values(), *(YARDSTICK_NAMES[y] for y in YARDSTICKS)]
@@ -518,11 +525,12 @@ def table_one(paper: dict, manifest: DictConfig) -> list[str]:
             missing = reasons(entries, methods)
             if missing:
                 notes.append(f"- {name} ({group['label']}): " + "; ".join(missing))
-            models = [f"{methods[k]}: {', '.join(e['labels'])} (seeds {', '.join(map(str, e['seeds']))})"
+            models = [f"{methods[k]}: {', '.join(e['labels'])} ({seeds_text(e['seeds'])}"
+                      + (": a seed repeated, so fewer independent runs than n" if e["repeated_seeds"] else "") + ")"
                       for k, e in entries.items() if e["status"] == "evaluated"]
             if models:
                 notes.append(f"- {name} ({group['label']}) models: " + "; ".join(models))
-        labels = [f"{YARDSTICK_NAMES[y]}: {yard[y]['label']}" for y in YARDSTICKS if yard.get(y)]
+        labels = [f"{YARDSTICK_NAMES[y]}: {yard[y]['label']}" for y in ("coarse_solver", "floor") if yard.get(y)]
         if labels or yard.get("note") or yard.get("error"):
             notes.append(f"- {name} yardsticks: " + "; ".join(labels + [yard.get("note") or "", yard.get("error") or ""]).strip("; "))
     settings = paper["evaluate"]
