@@ -50,6 +50,7 @@ from rgns.evaluation.tasks import Dataset
 from rgns.inverse.tasks import compare_inverse
 
 import matplotlib.pyplot as plt  # noqa: E402 - after rgns.evaluation.plots has chosen the Agg backend
+from matplotlib.ticker import NullFormatter  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -666,10 +667,10 @@ def rollout_chart(paper: dict, manifest: DictConfig, path: Path) -> bool:
                     errors.append(1e3 * _std(stats))
             if xs:
                 ax.bar(xs, ys, width, yerr=errors, capsize=3, label=group["label"])
-        for y, style in zip(YARDSTICKS, (":", "-.", "--", (0, (1, 3)))):
+        for y, style, colour in zip(YARDSTICKS, ("--", "-.", ":", ":"), ("black", "grey", "tab:red", "tab:purple")):
             row = bench.get("yardsticks", {}).get(y)
             if row and row.get("rollout_mse"):
-                ax.axhline(1e3 * row["rollout_mse"], color="grey", linestyle=style, linewidth=1, label=row["label"])
+                ax.axhline(1e3 * row["rollout_mse"], color=colour, linestyle=style, linewidth=1, label=row["label"])
         ax.set_xticks(range(len(methods)), list(methods.values()), rotation=30)
         ax.set_yscale("log")
         ax.set_ylabel("test rollout MSE (1e-3)")
@@ -687,7 +688,7 @@ def speed_chart(paper: dict, manifest: DictConfig, path: Path) -> bool:
                                                for g in b["sets"].values() for e in g["methods"].values())]
     if not points:
         return False
-    fig, axes = plt.subplots(1, len(points), figsize=(6 * len(points), 4.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(points), figsize=(8.5 * len(points), 4.5), squeeze=False)
     for ax, (name, bench) in zip(axes[0], points):
         for group in bench["sets"].values():
             for key, entry in group["methods"].items():
@@ -701,10 +702,12 @@ def speed_chart(paper: dict, manifest: DictConfig, path: Path) -> bool:
             ax.plot(coarse["forward_ms_per_step"], 1e3 * coarse["rollout_mse"], "k*", markersize=12, label=coarse["label"])
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):  # decades only: the minor labels of a short log axis overlap
+            axis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("forward ms per step (solver: per frame)")
         ax.set_ylabel("test rollout MSE (1e-3)")
         ax.set_title(name)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     save_figure(fig, path)
     return True
 
