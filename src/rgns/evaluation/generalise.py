@@ -245,7 +245,7 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
     columns = per_method * min(len(breaks), methods_a_row)
     rows = math.ceil(len(breaks) / methods_a_row)
     sizes = [(bounds[v, 1] - bounds[v, 0]) / (bounds[h, 1] - bounds[h, 0]) for h, v, _ in views]
-    fig, axes = plt.subplots(rows, columns, figsize=(2.3 * columns, rows * (2.3 * max(sizes) + 0.7) + 0.4),
+    fig, axes = plt.subplots(rows, columns, figsize=(2.3 * columns, rows * (2.3 * max(sizes) + 0.8) + 0.4),
                              squeeze=False)
     for ax in axes.flat:
         ax.set_axis_off()
@@ -257,8 +257,8 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
             seen = f"\n{name} ({axis_names[h]}-{axis_names[u]})" if name else ""
             low, high = bounds[[h, u], 0], bounds[[h, u], 1]
             for p, (who, points, colour) in enumerate((
-                    (f"{label}\ntrajectory {broke['trajectory']}, step {broke['step']} (frame {broke['frame']}): "
-                     f"{broke['cause']}{seen}", broke["predicted"], "tab:blue"),
+                    (f"{label}\n{broke['cause']} at step {broke['step']}\n(trajectory {broke['trajectory']}, "
+                     f"frame {broke['frame']}){seen}", broke["predicted"], "tab:blue"),
                     (f"truth, frame {broke['frame']}{seen}", broke["truth"], "0.3"))):
                 ax = axes[row, first * per_method + 2 * v + p]
                 _panel(ax, np.asarray(points, dtype=float)[:, [h, u]], kinematic, low, high, colour, who)
