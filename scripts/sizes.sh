@@ -41,7 +41,7 @@ train() {  # train SIZE SEED [overrides]: the base run, then (STAGE=1) its secon
     "${recipe[@]}" hydra.run.dir="$run" "$@" > "$run.log" 2>&1 || return 1
   [ "${STAGE:-0}" = 1 ] || return 0
   local best
-  best=$(ls "$run"/checkpoints/best-step*.ckpt 2>/dev/null | head -n 1)
+  best=$(ls "$run"/checkpoints/best-step*.ckpt 2>/dev/null | head -n 1 || true)
   [ -n "$best" ] || { echo "no best-step*.ckpt in $run/checkpoints for the stage" >> "$run.log"; return 1; }
   .venv/bin/python train.py experiment=main_stage model="$model" model.latent="${size%x*}" model.layers="${size#*x}" \
     seed="$seed" trainer.max_steps=600 trainer.max_time=00:00:04:00 trainer.enable_progress_bar=false \
