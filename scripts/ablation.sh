@@ -13,12 +13,10 @@
 #   unfinished one starts again from scratch
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/lib.sh
 benchmark=waterdrop
 if [[ $# -gt 0 && $1 != *=* && ! $1 =~ ^[0-9\ ]+$ ]]; then benchmark=$1; shift; fi
-if [[ ! -f conf/scene/$benchmark.yaml || $benchmark == *_full ]]; then
-  echo "scripts/ablation.sh: no benchmark '$benchmark': conf/scene/$benchmark.yaml is not a training scene" >&2
-  exit 2
-fi
+check_benchmark scripts/ablation.sh "$benchmark"
 seeds="0 1 2"
 if [[ $# -gt 0 && $1 =~ ^[0-9\ ]+$ ]]; then seeds=$1; shift; fi
 bash scripts/setup.sh
@@ -47,13 +45,7 @@ run() {  # run SEED VARIANT
   touch "$dir/done"
 }
 extra=("$@")
-lane() {  # every second job, from $1
-  local i
-  for ((i = $1; i < ${#jobs[@]}; i += 2)); do run ${jobs[$i]}; done
-}
-lane 0 & first=$!
-lane 1 & second=$!
-wait $first && wait $second
+two_lanes run
 for seed in $seeds; do  # the default run stands for every default variant
   for name in ilp fixed; do
     mkdir -p "$out/$name" && ln -sfn "../dl4/seed$seed" "$out/$name/seed$seed"

@@ -10,12 +10,10 @@
 #   R-GNS-dagger (model=rgns_forward_only) trains with R-GNS's budget. conf/paper.yaml reads these runs.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/lib.sh
 benchmark=waterdrop
 if [[ $# -gt 0 && ! $1 =~ ^[0-9\ ]+$ ]]; then benchmark=$1; shift; fi
-if [[ ! -f conf/scene/$benchmark.yaml || $benchmark == *_full ]]; then
-  echo "scripts/baselines.sh: no benchmark '$benchmark': conf/scene/$benchmark.yaml is not a training scene" >&2
-  exit 2
-fi
+check_benchmark scripts/baselines.sh "$benchmark"
 bash scripts/setup.sh
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONWARNINGS=ignore
 seeds=${1:-"0 1 2"}
@@ -39,13 +37,7 @@ run() {  # run SEED MODEL OVERRIDES...
   .venv/bin/python train.py experiment=main model="$model" seed="$seed" "$@" trainer.max_time=null \
     trainer.enable_progress_bar=false data.root="$data" data.make_root="$data" data.make.scene="$benchmark" hydra.run.dir="$out/train/s$seed/$model" > "$out/s$seed.$model.log" 2>&1
 }
-lane() {  # every second job, from $1
-  local i
-  for ((i = $1; i < ${#jobs[@]}; i += 2)); do run ${jobs[$i]}; done
-}
-lane 0 & first=$!
-lane 1 & second=$!
-wait $first && wait $second
+two_lanes run
 
 .venv/bin/python evaluate.py checkpoints_dir="$out/train" checkpoint=best trajectories=8 task=forward \
   data_root="$data" hydra.run.dir="$out/evaluation"

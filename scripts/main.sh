@@ -14,13 +14,10 @@
 #   (outputs/main_<BENCHMARK>/<time>/; the layout conf/paper.yaml reads)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/lib.sh
 benchmark=waterdrop
 if [[ $# -gt 0 && $1 != *=* ]]; then benchmark=$1; shift; fi
-if [[ ! -f conf/scene/$benchmark.yaml || $benchmark == *_full ]]; then
-  echo "scripts/main.sh: no benchmark '$benchmark': conf/scene/$benchmark.yaml is not a training scene" \
-    "(one of: $(ls conf/scene | sed -n 's/\.yaml$//p' | grep -v _full | paste -sd' ' -))" >&2
-  exit 2
-fi
+check_benchmark scripts/main.sh "$benchmark"
 bash scripts/setup.sh
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONWARNINGS=ignore
 data="datasets/${benchmark}40_main"

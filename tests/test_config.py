@@ -150,16 +150,18 @@ def test_training_benchmark_measures_the_main_jobs_models():
         assert MAIN_OVERRIDES[model] == [o for o in overrides[5:] if o.startswith("model.")], model
 
 
-def test_main_job_refuses_a_benchmark_it_has_no_scene_for():
-    """`bash scripts/main.sh BENCHMARK` names the scenes it knows and stops before any set-up."""
+@pytest.mark.parametrize("script", ["main.sh", "baselines.sh", "ablation.sh"])
+def test_job_scripts_refuse_a_benchmark_they_have_no_scene_for(script):
+    """`bash scripts/<job>.sh BENCHMARK` names the scenes it knows and stops before any set-up."""
     import subprocess
     from pathlib import Path
 
-    script = Path(__file__).parents[1] / "scripts" / "main.sh"
+    path = Path(__file__).parents[1] / "scripts" / script
     for name in ("waterdrops", "water3d_full"):
-        done = subprocess.run(["bash", str(script), name, "seed=1"], capture_output=True, text=True, timeout=60)
+        done = subprocess.run(["bash", str(path), name], capture_output=True, text=True, timeout=60)
         assert done.returncode == 2, done.stderr
-        assert f"no benchmark '{name}'" in done.stderr and "waterramps" in done.stderr and "water3d " in done.stderr
+        assert f"scripts/{script}: no benchmark '{name}'" in done.stderr
+        assert "waterramps" in done.stderr and "water3d " in done.stderr
 
 
 @pytest.mark.parametrize("benchmark,dim", [("waterdrop", 2), ("waterramps", 2), ("water3d", 3), ("sand", 2)])
