@@ -705,3 +705,38 @@ def test_rgns_refuses_to_compile_its_memory_saving_backward():
     with pytest.raises(ValueError, match="memory_saving=false"):
         model.compile_network(dynamic=True)
     assert not model.compiled
+
+
+@pytest.mark.parametrize("backwards", [False, True])
+def test_a_rollout_that_turns_non_finite_is_nan_from_there_not_a_crash(backwards):
+    """A model whose velocity turns NaN at its 4th step: the frames it reaches are NaN and the
+    rollout ends with NaN frames where building a radius graph of NaN positions used to raise."""
+    from rgns.evaluation.baselines import ConstantVelocity
+
+    class TurnsNaN(ConstantVelocity):
+        calls = 0
+
+        def next_velocity(self, *args, **kwargs):
+            return self.planted(super().next_velocity(*args, **kwargs))
+
+        def oldest_velocity(self, *args, **kwargs):
+            return self.planted(super().oldest_velocity(*args, **kwargs))
+
+        def planted(self, velocity):
+            self.calls += 1
+            return velocity if self.calls < 4 else torch.full_like(velocity, float("nan"))
+
+    metadata = dict(bounds=[[0.0, 1.0]] * 2, default_connectivity_radius=0.1, dim=2, dt=0.0025, sequence_length=20,
+                    vel_mean=[0.0] * 2, vel_std=[1e-3] * 2, acc_mean=[0.0] * 2, acc_std=[1e-4] * 2)
+    model = TurnsNaN(metadata, history=3)
+    axis = torch.linspace(0.3, 0.7, 6)
+    position = torch.stack(torch.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
+    state = State(position, torch.full((36, 3, 2), 1e-3), torch.full((36,), WATER))
+    frames = model.inverse_rollout(state, 12) if backwards else model.rollout(state, 12)
+    finite = torch.isfinite(frames).flatten(1).all(1)
+    # forward: the 4th step's frame is NaN, and the 5th step's graph would be built on it; backward: the
+    # NaN velocity enters the history as its oldest and reaches the newest, which the next graph's
+    # positions p - v subtract, 2 steps later, so the 6th step is the last and frame 7 the first NaN one
+    first_nan, last_call = (6, 6) if backwards else (3, 4)
+    assert finite[:first_nan].all() and not finite[first_nan:].any()
+    assert model.calls == last_call  # no step after the one whose next graph would be NaN

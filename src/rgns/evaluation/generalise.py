@@ -51,7 +51,6 @@ from torch import Tensor
 
 from rgns.data.contract import KINEMATIC
 from rgns.data.generate import generate_dataset, scene_config
-from rgns.data.graph import NeighbourList
 from rgns.evaluation.metrics import density_ratio, mse_per_step
 from rgns.evaluation.plots import PANELS_PER_ROW, save_figure
 from rgns.evaluation.tasks import Dataset, finite, mean_or_none, stride_of
@@ -161,9 +160,9 @@ def inverse_rollout(method, position: Tensor, particle_type: Tensor, end: int, s
     from the state built of frames ``end, end - s, ..``; the frames between its steps are filled in
     along straight lines (:func:`~rgns.training.rollouts.fill_frames`).
 
-    As :meth:`~rgns.models.Simulator.rollout` does forward, a rollout that collapses (its densest
-    cell of side R past ``model.collapse_factor`` times the first state's) repeats its last frame
-    from there, and one that turns non-finite is NaN from there: no radius graph is built of it.
+    :meth:`~rgns.models.Simulator.inverse_rollout` stops as the forward rollout does: one that
+    collapses (its densest cell of side R past ``model.collapse_factor`` times the first state's)
+    repeats its last frame from there, one that turns non-finite is NaN from there.
 
     Shapes:
         position: ``[T, N, D]`` ground truth  ->  ``[steps, N, D]`` inferred frames end-1, end-2, ..
@@ -178,23 +177,9 @@ def inverse_rollout(method, position: Tensor, particle_type: Tensor, end: int, s
         raise ValueError(f"{method.label}: an inverse rollout from frame {end} needs {k} velocities of history "
                          f"{stride} frame(s) apart before it (frame >= {stride * k})")
     state = State.from_positions(phase[last - k : last + 1], particle_type)
-    neighbours = NeighbourList(model.radius, model.neighbour_skin * model.radius)  # as Simulator.rollout
-    limit = None if model.collapse_factor is None else model.collapse_factor * model.densest_cell(state.position)
-    frames = []
-    for j in range(n):
-        if not bool(torch.isfinite(state.position - state.velocity_history[:, -1]).all()):  # the frame it reaches
-            log.warning("%s: inverse rollout non-finite at step %d of %d: NaN from there", method.label, j + 1, n)
-            frames.extend([torch.full_like(state.position, float("nan"))] * (n - j))
-            break
-        # the oldest velocity predicted at step j fixes frame end - s (j + 1 + k): kinematic particles go there
-        state = model.inverse_step(state, phase[max(last - 1 - j - k, 0)], neighbours)
-        frames.append(state.position)
-        if limit is not None and j + 1 < n and model.densest_cell(state.position) > limit:
-            log.warning("%s: inverse rollout collapsed at step %d of %d (more than %.0f particles in one cell of "
-                        "side R): the remaining frames repeat its last", method.label, j + 1, n, limit)
-            frames.extend([state.position] * (n - j - 1))
-            break
-    predicted = fill_frames(position[end], torch.stack(frames), stride)[:steps]
+    # row i: the phase's frame last - 1 - i, where kinematic particles stand (Simulator.inverse_rollout)
+    inferred = model.inverse_rollout(state, n, phase[:last].flip(0))
+    predicted = fill_frames(position[end], inferred, stride)[:steps]
     kinematic = particle_type == KINEMATIC
     predicted[:, kinematic] = position[end - steps : end].flip(0)[:, kinematic]
     return predicted

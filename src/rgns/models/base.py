@@ -321,42 +321,55 @@ class Simulator(nn.Module):
         past any fluid's compression or a pile against a wall: it stops there, logs it, and repeats
         its last frame for the remaining steps, so its error stays counted while a clump's
         quadratic radius graph no longer costs minutes per step. ``collapse_factor = None``: never stop.
+        A rollout whose positions turn non-finite stops there too, its remaining frames NaN (no radius
+        graph can be built of them): its error is not finite and its break "non-finite", not a crash.
 
         The radius graphs come from one :class:`~rgns.data.graph.NeighbourList` with a skin of
         :attr:`neighbour_skin` times R: the same edges as a fresh graph per step (found again
         only when some particle has moved half the skin; with the default 0, every step).
         """
-        factor = self.collapse_factor
-        limit = None if factor is None else factor * self.densest_cell(state.position, state.batch)
-        neighbours = NeighbourList(self.radius, self.neighbour_skin * self.radius)
-        positions = []
-        for i in range(steps):
-            state = self.step(state, None if kinematic_positions is None else kinematic_positions[i], neighbours)
-            positions.append(state.position)
-            if limit is not None and i + 1 < steps and self.densest_cell(state.position, state.batch) > limit:
-                log.warning("%s rollout collapsed at step %d of %d (more than %.0f particles in one cell "
-                            "of side R): the remaining frames repeat its last", type(self).__name__, i + 1,
-                            steps, limit)
-                positions.extend([state.position] * (steps - i - 1))
-                break
-        return torch.stack(positions)
+        return self._unroll(self.step, state, steps, kinematic_positions, 0, "rollout")
 
     @torch.no_grad()
     def inverse_rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None) -> Tensor:
-        """Positions of frames t-1, t-2, .., t-steps (going back in time).
+        """Positions of frames t-1, t-2, .., t-steps (going back in time), stopped as :meth:`rollout`
+        stops where it collapses or turns non-finite.
 
-        ``kinematic_positions [steps, N, D]``: kinematic positions of those frames (row i is frame
-        t-1-i); frames t-1 .. t-k follow from the state's own velocity history.
+        ``kinematic_positions [M, N, D]``: kinematic positions of frames t-1, t-2, .. (row i is frame
+        t-1-i; frames past row M - 1 keep what the model infers); frames t-1 .. t-k follow from the
+        state's own velocity history, so step i places them at row i + k.
         """
         if not self.bidirectional:
             raise NotImplementedError(f"{type(self).__name__} simulates forward in time only")
-        neighbours = NeighbourList(self.radius, self.neighbour_skin * self.radius)  # as in rollout
+        return self._unroll(self.inverse_step, state, steps, kinematic_positions, self.history, "inverse rollout")
+
+    def _unroll(self, step, state: State, steps: int, kinematic_positions: Tensor | None, lag: int,
+                name: str) -> Tensor:
+        """``steps`` applications of ``step(state, known, neighbours)``; ``known``: row ``i + lag`` of
+        ``kinematic_positions`` at step i where there is one. Stops at a collapse (repeats the last
+        frame) or a non-finite state (NaN from there)."""
+        factor = self.collapse_factor
+        limit = None if factor is None else factor * self.densest_cell(state.position, state.batch)
+        neighbours = NeighbourList(self.radius, self.neighbour_skin * self.radius)
+        known_rows = 0 if kinematic_positions is None else len(kinematic_positions)
         positions = []
         for i in range(steps):
-            j = i + self.history  # the frame this step's predicted velocity fixes: t-1-j
-            known = None if kinematic_positions is None or j >= steps else kinematic_positions[j]
-            state = self.inverse_step(state, known, neighbours)
+            state = step(state, kinematic_positions[i + lag] if i + lag < known_rows else None, neighbours)
             positions.append(state.position)
+            if i + 1 == steps:
+                break
+            # the next step's graph is built on p^t (forward) or p^t - v^t (backward): finite only if both are
+            if not bool(torch.isfinite(state.position - state.velocity_history[:, -1]).all()):
+                log.warning("%s %s non-finite at step %d of %d: NaN from there", type(self).__name__, name,
+                            i + 1, steps)
+                positions.extend([torch.full_like(state.position, float("nan"))] * (steps - i - 1))
+                break
+            if limit is not None and self.densest_cell(state.position, state.batch) > limit:
+                log.warning("%s %s collapsed at step %d of %d (more than %.0f particles in one cell "
+                            "of side R): the remaining frames repeat its last", type(self).__name__, name, i + 1,
+                            steps, limit)
+                positions.extend([state.position] * (steps - i - 1))
+                break
         return torch.stack(positions)
 
     def extra_repr(self) -> str:
