@@ -35,11 +35,15 @@ solver) and ``goal_<name>_K<K>.gif`` (the solver's K frames from each method's i
 target behind; the model's where there is no solver), and ``goal_<name>.json``.
 
 3D: the 2D shape stands in the x-y plane (gravity along -y) and is extruded along z, centred
-in the box; figures show the x-y projection.
+in the box; the figure has two rows per method, the scene seen from the front (x against the axis
+gravity pulls along) and from above (x-z), and the animation two panels per method, one of each
+view; every title names its view. Several texts (``goal.text=[L,N]``, ``--text L N``) are
+separate targets, run one after the other, each into its own files (``goal_L_K40.png``, ...).
 
 Command line (works without ``evaluate.py``)::
 
     python -m rgns.inverse.goal --ckpt A.ckpt [--ckpt B.ckpt] --text LN --steps 20 40 100 --out DIR
+    python -m rgns.inverse.goal --ckpt A.ckpt --text L N --steps 40 --out DIR   # two targets, "L" and "N"
     python -m rgns.inverse.goal --ckpt A.ckpt --points circle.npy --place centre --velocity 0 1 --out DIR
     python -m rgns.inverse.goal --ckpt A.ckpt --mask shape.png --out DIR
 """
@@ -392,13 +396,28 @@ def shape_metrics(reproduced: np.ndarray | None, target: np.ndarray) -> dict | N
 
 
 # ---------------------------------------------------------------------------------------------- outputs
-def _scatter(ax, points: np.ndarray, bounds: np.ndarray, colour, size: float, alpha: float = 1.0) -> None:
-    ax.scatter(points[:, 0], points[:, 1], s=size, color=colour, alpha=alpha, linewidths=0)
-    ax.set_xlim(*bounds[0])
-    ax.set_ylim(*bounds[1])
+def _scatter(ax, points: np.ndarray, bounds: np.ndarray, colour, size: float, view=(0, 1, "")) -> None:
+    """Particles ``[N, D]`` seen along ``view`` ``(horizontal axis, vertical axis, name)``, in the box."""
+    across, up, _ = view
+    ax.scatter(points[:, across], points[:, up], s=size, color=colour, linewidths=0)
+    ax.set_xlim(*bounds[across])
+    ax.set_ylim(*bounds[up])
     ax.set_aspect("equal")
     ax.set_xticks([])
     ax.set_yticks([])
+
+
+def _views(dim: int, up: int) -> list[tuple[int, int, str]]:
+    """What a goal picture shows: the x-y plane in 2D; in 3D the front (x against ``up``) and the top view."""
+    from rgns.evaluation.generalise import _views as views  # lazily: generalise imports pyplot
+
+    return views(dim, up)
+
+
+def _seen(view) -> str:
+    """A view's name for a panel title, with its axes: ``front (x-y)``; empty in 2D."""
+    across, up, name = view
+    return f"{name} ({'xyz'[across]}-{'xyz'[up]})" if name else ""
 
 
 def _chamfer_title(name: str, metrics: dict | None) -> str:
@@ -408,65 +427,87 @@ def _chamfer_title(name: str, metrics: dict | None) -> str:
     return f"{name} (Chamfer {value:.2e})" if value is not None else f"{name} (non-finite)"
 
 
-def goal_figure(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, title: str) -> None:
+def goal_figure(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, title: str, up: int = 1) -> None:
     """Rows = methods; columns = target, inferred initial state, reproduced by the model, reproduced
-    by the solver (x-y plane)."""
+    by the solver. 2D: the x-y plane. 3D: two rows per method, seen from the front (x against the
+    ``up`` axis) and from above (x-z), the view named in each title, the target in grey under the
+    method's particles in every panel but the target's own."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     bounds = np.asarray(bounds)
+    views = _views(len(bounds), up)
     size = max(0.5, min(6.0, 4000 / max(len(target), 1)))
-    fig, axes = plt.subplots(len(runs), 4, figsize=(12, 3 * len(runs)), squeeze=False)
-    for row, run in zip(axes, runs):
-        _scatter(row[0], target, bounds, "tab:blue", size)
-        _scatter(row[1], run.initial, bounds, "tab:orange", size)
-        for ax, frames in ((row[2], run.trajectory), (row[3], run.solver)):
-            _scatter(ax, target, bounds, "lightgrey", size)
-            if frames is not None and np.isfinite(frames[-1]).all():
-                _scatter(ax, frames[-1], bounds, "tab:green", size)
-        row[0].set_ylabel(run.label, fontsize=11)
-        row[0].set_title("target", fontsize=9)
+    rows = len(runs) * len(views)
+    fig, axes = plt.subplots(rows, 4, figsize=(12, 3 * rows), squeeze=False)
+    for m, run in enumerate(runs):
         status = run.extra.get("status", "feed_forward")
         note = "" if status in ("feed_forward", "no planning") else f", {status}"
         flags = run.extra.get("plausibility", {}).get("flags")
-        row[1].set_title(f"initial state ({run.seconds:.2f} s{note})" + ("\n" + "; ".join(flags) if flags else ""),
-                         fontsize=7 if flags else 9)
-        row[2].set_title(_chamfer_title("by the model", run.extra.get("model")), fontsize=9)
-        row[3].set_title(_chamfer_title("by the solver", run.extra.get("solver")), fontsize=9)
+        titles = ["target", f"initial state ({run.seconds:.2f} s{note})" + ("\n" + "; ".join(flags) if flags else ""),
+                  _chamfer_title("by the model", run.extra.get("model")),
+                  _chamfer_title("by the solver", run.extra.get("solver"))]
+        for v, view in enumerate(views):
+            row = axes[m * len(views) + v]
+            _scatter(row[0], target, bounds, "tab:blue", size, view)
+            if view[2]:  # 3D: where the initial state stands against the target
+                _scatter(row[1], target, bounds, "lightgrey", size, view)
+            _scatter(row[1], run.initial, bounds, "tab:orange", size, view)
+            for ax, frames in ((row[2], run.trajectory), (row[3], run.solver)):
+                _scatter(ax, target, bounds, "lightgrey", size, view)
+                if frames is not None and np.isfinite(frames[-1]).all():
+                    _scatter(ax, frames[-1], bounds, "tab:green", size, view)
+            row[0].set_ylabel(run.label + (f"\n{_seen(view)}" if view[2] else ""), fontsize=11)
+            for ax, text in zip(row, titles):
+                seen = f"\n{_seen(view)}" if view[2] else ""
+                ax.set_title(text + seen, fontsize=7 if (flags and ax is row[1]) or view[2] else 9)
     fig.suptitle(title)
     save_figure(fig, path)
 
 
 def goal_animation(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, fps: int = 10,
-                   max_frames: int = 60) -> None:
+                   max_frames: int = 60, up: int = 1) -> None:
     """One panel per method: the solver's K frames from its initial state (the model's where there
-    is no solver run), the target behind."""
+    is no solver run), the target behind. 3D: two panels per method, one above the other, seen
+    from the front (x against the ``up`` axis) and from above (x-z); at most ``PANELS_PER_ROW``
+    methods a row."""
     import imageio.v2 as imageio
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from rgns.evaluation.plots import PANELS_PER_ROW
+
     bounds = np.asarray(bounds)
+    views = _views(len(bounds), up)
     size = max(0.5, min(6.0, 4000 / max(len(target), 1)))
     shown = [(run, run.solver if run.solver is not None else run.trajectory,
               "solver" if run.solver is not None else "model") for run in runs]
     shown = [(run, frames, by) for run, frames, by in shown if frames is not None]
     if not shown:
         return
+    columns = len(shown) if len(views) == 1 else min(len(shown), PANELS_PER_ROW)  # 2D: one row, as always
+    rows = len(views) * math.ceil(len(shown) / columns)
     length = max(len(frames) for _, frames, _ in shown)
     frames_at = np.unique(np.linspace(0, length - 1, min(length, max_frames)).round().astype(int))
     images = []
     for t in frames_at:
-        fig, axes = plt.subplots(1, len(shown), figsize=(3.2 * len(shown), 3.4), dpi=80, squeeze=False)
-        for ax, (run, frames, by) in zip(axes[0], shown):
+        fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.4 * rows), dpi=80, squeeze=False)
+        for ax in axes.flat[len(shown) * len(views):]:
+            ax.set_axis_off()
+        for i, (run, frames, by) in enumerate(shown):
             frame = frames[min(t, len(frames) - 1)]
-            _scatter(ax, target, bounds, "lightgrey", size)
-            if np.isfinite(frame).all():
-                _scatter(ax, frame, bounds, "tab:blue", size)
-            ax.set_title(f"{run.label} ({by}): frame {min(t, len(frames) - 1)}", fontsize=8)
+            block, column = divmod(i, columns)
+            for v, view in enumerate(views):
+                ax = axes[block * len(views) + v, column]
+                _scatter(ax, target, bounds, "lightgrey", size, view)
+                if np.isfinite(frame).all():
+                    _scatter(ax, frame, bounds, "tab:blue", size, view)
+                seen = f"\n{_seen(view)}" if view[2] else ""
+                ax.set_title(f"{run.label} ({by}): frame {min(t, len(frames) - 1)}{seen}", fontsize=8)
         fig.tight_layout()
         fig.canvas.draw()
         images.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
@@ -483,6 +524,12 @@ def _horizons(steps) -> list[int]:
         shown = steps if isinstance(steps, int) else horizons
         raise ValueError(f"goal.steps={shown}: K, the inverse steps from the target, must be at least 1")
     return sorted(set(horizons))
+
+
+def file_name(spec: GoalSpec) -> str:
+    """What a target's files are called after: its label, each character that is not a letter or
+    digit as ``_`` (``goal_<name>_K<K>.png``)."""
+    return "".join(c if c.isalnum() else "_" for c in spec.label)
 
 
 def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, steps=(20, 40, 100),
@@ -519,7 +566,10 @@ def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, 
     log.info("goal %r: %d particles at spacing %g, velocity %s m/s", spec.label, len(target), spacing, velocity_si)
     solver, note = GroundTruthSolver.for_dataset(metadata, len(target)) if physics else (None, "No physics check (physics=false).")
     stopping = StoppingRule(**(rule or {}))
-    name = "".join(c if c.isalnum() else "_" for c in spec.label)
+    name = file_name(spec)
+    from rgns.evaluation.generalise import up_axis  # lazily: generalise imports pyplot
+
+    up = up_axis(metadata)  # the figures' vertical axis: the one gravity pulls along
     target_np, files, per_k = target.numpy(), [], {}
     for K in horizons:
         runs = []
@@ -545,8 +595,8 @@ def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, 
                 run.extra["solver"] = dict(shape_metrics(reproduced, target_np) or {}, **info)
             log.info("K=%d, %s: model %s, solver %s", K, run.label, run.extra["model"], run.extra.get("solver"))
         title = f"goal {spec.label!r}: {len(target)} particles, K = {K}"
-        goal_figure(target_np, runs, bounds, out_dir / f"goal_{name}_K{K}.png", title)
-        goal_animation(target_np, runs, bounds, out_dir / f"goal_{name}_K{K}.gif", fps=fps)
+        goal_figure(target_np, runs, bounds, out_dir / f"goal_{name}_K{K}.png", title, up=up)
+        goal_animation(target_np, runs, bounds, out_dir / f"goal_{name}_K{K}.gif", fps=fps, up=up)
         files += [f"goal_{name}_K{K}.png", f"goal_{name}_K{K}.gif"]
         per_k[str(K)] = dict(methods={r.label: dict(r.extra, seconds=r.seconds) for r in runs})
     results = dict(goal=vars(spec), particles=len(target), spacing=spacing, steps=horizons, dim=dim,
@@ -559,14 +609,33 @@ def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, 
     return results
 
 
+def goal_specs(text=None, **shape) -> list[GoalSpec]:
+    """One :class:`GoalSpec` per target: ``text`` a list (``goal.text=[L,N]``) gives one per text,
+    each run in turn into its own files; a string (``goal.text=LN``), one. Raises where two
+    targets would write the same files."""
+    texts = list(text) if isinstance(text, (list, tuple)) else [text]
+    if not texts:
+        raise ValueError("goal.text=[]: give a text, or a list of texts (goal.text=[L,N]), or null with a mask or points")
+    specs = [GoalSpec(text=None if t is None else str(t), **shape) for t in texts]
+    names = [file_name(spec) for spec in specs]
+    if len(set(names)) < len(names):
+        raise ValueError(f"goal.text={texts}: two targets would write the same files (goal_<name>_K<K>.png with "
+                         f"names {names}); give texts that differ in their letters or digits")
+    return specs
+
+
 class GoalShaping:
     """:func:`run_goal` as an ``evaluate.py`` task (``task(methods, dataset) -> (results, examples)``),
     e.g. ``task=goal goal.text=LN``; files go to ``<out_dir>/goal_<dataset>/``. The training data's
     largest speed comes from its first ``speed_trajectories`` train trajectories.
 
+    Several texts, ``goal.text=[L,N]``, run one after the other, each into its own files
+    (``goal_L_K40.png``, ``goal_N_K40.png``, ...) and its own entry of ``targets`` in the results,
+    keyed by the text; the results' other keys are the first target's (what ``report.md`` shows).
+
     Args: ``out_dir`` (the run folder), ``steps`` (K, one or a list), ``optimisers`` and ``rule``
     (as :func:`run_goal`, ``None``: none), ``physics``, and the :class:`GoalSpec` fields (``text``,
-    ``mask``, ``points``, ``height``, ``place``, ``lift``, ``velocity``, ...).
+    one or a list, ``mask``, ``points``, ``height``, ``place``, ``lift``, ``velocity``, ...).
     """
 
     name = "goal"
@@ -576,7 +645,8 @@ class GoalShaping:
         self.steps = _horizons(steps)
         self.out_dir, self.optimisers, self.rule, self.physics = out_dir, optimisers, rule, physics
         self.speed_trajectories = speed_trajectories
-        self.spec = GoalSpec(**shape)
+        self.specs = goal_specs(**shape)
+        self.several = isinstance(shape.get("text"), (list, tuple))
 
     def __call__(self, methods, dataset) -> tuple[dict, dict]:
         from rgns.data.contract import open_split
@@ -586,9 +656,11 @@ class GoalShaping:
         with open_split(dataset.root, "train") as data:
             train = [data[i] for i in range(min(self.speed_trajectories, len(data)))]
         max_speed = data_max_speed(train, float(dataset.metadata["dt"])) if train else None
-        results = run_goal(models, dataset.metadata, self.spec, Path(self.out_dir) / f"goal_{dataset.name}",
-                           self.steps, self.optimisers, self.rule, frame, max_speed, self.physics)
-        return results, {}
+        targets = {spec.label: run_goal(models, dataset.metadata, spec, Path(self.out_dir) / f"goal_{dataset.name}",
+                                        self.steps, self.optimisers, self.rule, frame, max_speed, self.physics)
+                   for spec in self.specs}
+        first = next(iter(targets.values()))
+        return (dict(first, targets=targets) if self.several else first), {}
 
 
 def _label(model, extras: dict, path: str) -> str:
@@ -604,7 +676,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ckpt", action="append", required=True, help="a checkpoint (repeat for several)")
     shape = parser.add_mutually_exclusive_group(required=True)
-    shape.add_argument("--text")
+    shape.add_argument("--text", nargs="+", help="one target per text, each into its own files: --text L N")
     shape.add_argument("--mask", help="an image file (bright shape on dark, or --invert)")
     shape.add_argument("--points", help="a .npy or .txt [M, D] point file, in metres")
     parser.add_argument("--invert", action="store_true")
@@ -643,17 +715,24 @@ def main(argv: list[str] | None = None) -> dict:
     with open_split(root, "train") as data:
         frame = data[0][0][0]
         max_speed = data_max_speed([data[i] for i in range(min(2, len(data)))], float(metadata["dt"]))
-    spec = GoalSpec(text=args.text, mask=args.mask, points=args.points, height=args.height, depth=args.depth,
-                    place=args.place, lift=args.lift, velocity=args.velocity, invert=args.invert)
-    results = run_goal(models, metadata, spec, args.out, args.steps, {kind: {} for kind in args.optimisers},
-                       dict(max_iterations=args.iterations), frame, max_speed, not args.no_physics)
-    for K, at in results["horizons"].items():
-        for label, row in at["methods"].items():
-            model, solver = row["model"] or {}, row.get("solver") or {}
-            print(f"K={K:>4} {label:32s} chamfer model={model.get('chamfer')} solver={solver.get('chamfer')} "
-                  f"seconds={row['seconds']:.3f} status={row.get('status')} flags={row['plausibility']['flags']}")
-    print(f"wrote {', '.join(str(Path(args.out) / f) for f in results['files'])}")
-    return results
+    try:
+        specs = goal_specs(text=args.text, mask=args.mask, points=args.points, height=args.height, depth=args.depth,
+                           place=args.place, lift=args.lift, velocity=args.velocity, invert=args.invert)
+    except ValueError as error:
+        parser.error(str(error))
+    targets = {}
+    for spec in specs:
+        results = targets[spec.label] = run_goal(
+            models, metadata, spec, args.out, args.steps, {kind: {} for kind in args.optimisers},
+            dict(max_iterations=args.iterations), frame, max_speed, not args.no_physics)
+        for K, at in results["horizons"].items():
+            for label, row in at["methods"].items():
+                model, solver = row["model"] or {}, row.get("solver") or {}
+                print(f"{spec.label!r} K={K:>4} {label:32s} chamfer model={model.get('chamfer')} "
+                      f"solver={solver.get('chamfer')} seconds={row['seconds']:.3f} status={row.get('status')} "
+                      f"flags={row['plausibility']['flags']}")
+        print(f"wrote {', '.join(str(Path(args.out) / f) for f in results['files'])}")
+    return targets[specs[0].label] if len(specs) == 1 else targets
 
 
 if __name__ == "__main__":
