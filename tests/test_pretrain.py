@@ -4,6 +4,7 @@ from its last checkpoint, finished stages are skipped, and the result's provenan
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -11,12 +12,17 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from conftest import make_metadata, random_trajectory
 from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from rgns import config_dir
+from rgns.data.contract import SPLITS, DatasetError, write_metadata, write_split
+from rgns.training import stages
 from rgns.training.stages import read_preset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -155,3 +161,135 @@ def test_recipe_chains_resumes_and_skips(dataset, tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert kept.returncode == 2 and "not overwritten" in kept.stderr
     assert (tmp_path / "elsewhere" / "rgns.ckpt").read_bytes() == b"another file"
+
+
+# ---- strided presets: their windows fit the data, their lengths are the stride-1 recipe's in time ----
+
+def stage_config(preset: Path, stage: dict, tmp_path: Path):
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        return compose("train", overrides=[f"output_dir={tmp_path}", f"experiment=pretrain/{preset.stem}",
+                                           *stage["overrides"], "init_from=x.ckpt"])
+
+
+def preset_frames(spec: dict) -> int:
+    """Frames per trajectory of a preset's dataset: its num_frames= argument, else its scene's."""
+    arguments = dict(a.split("=", 1) for a in spec["dataset"])
+    if "num_frames" in arguments:
+        return int(arguments["num_frames"])
+    return int(OmegaConf.load(config_dir() / "scene" / f"{arguments['scene']}.yaml").num_frames)
+
+
+def dataset_of(root: Path, frames: int) -> Path:
+    """One trajectory of ``frames`` frames in each split: the shapes the datamodule checks."""
+    rng = np.random.default_rng(0)
+    for split in SPLITS:
+        write_split(root / f"{split}.h5", [random_trajectory(rng, frames=frames, particles=8, kinematic=2)])
+    write_metadata(root, make_metadata(frames=frames))
+    return root
+
+
+def test_every_stage_of_every_preset_fits_its_trajectories(tmp_path):
+    """Each stage's training windows (lead + history + 1 + horizon frames, counted without the early
+    windows' filled-in lead), its pushes and unrolls, and its validation rollout fit one phase of the
+    preset's trajectories at its stride, by the datamodule's own check on a dataset of that length."""
+    strides = set()
+    for path in PRESETS:
+        spec = read_preset(path)
+        frames = preset_frames(spec)
+        root = tmp_path / f"frames{frames}"
+        if not root.exists():
+            dataset_of(root, frames)
+        for stage in spec["stages"]:
+            cfg = stage_config(path, stage, tmp_path)
+            where = f"{path.name}, stage {stage['name']}"
+            stride, lead, horizon, k = cfg.data.stride, cfg.data.lead, cfg.data.horizon, cfg.history
+            strides.add(stride)
+            phase = frames // stride  # frames in a trajectory's shortest phase
+            data = instantiate(cfg.data, root=str(root), make=None, make_root=None, early_windows=False, num_workers=0)
+            data.check()  # raises DatasetError when a window does not fit a phase
+            assert lead + k + 1 + horizon <= phase, where
+            pushforward, unroll = cfg.module.get("pushforward"), cfg.module.get("unroll")
+            if pushforward:
+                assert max(pushforward.unrolls) <= lead, where
+            if unroll:
+                assert max(unroll.lengths) <= horizon, where
+            # the validation rollout runs its whole length from frame k of a phase
+            assert cfg.module.val_rollout_steps <= phase - k - 1, where
+            # the check is live: one frame more than the phase holds is refused
+            too_long = instantiate(cfg.data, root=str(root), make=None, make_root=None, early_windows=False,
+                                   num_workers=0, lead=phase - k - horizon)
+            with pytest.raises(DatasetError, match="window needs"):
+                too_long.check()
+    assert strides >= {1, 2, 4}
+
+
+def physical(cfg) -> dict:
+    """A stage's settings counted in model steps (each spans data.stride frames)."""
+    pushforward, unroll = cfg.module.get("pushforward"), cfg.module.get("unroll")
+    return {"data.lead": [cfg.data.lead], "data.horizon": [cfg.data.horizon],
+            "module.val_rollout_steps": [cfg.module.val_rollout_steps],
+            "module.val_consistency_steps": [cfg.module.val_consistency_steps],
+            "module.pushforward.unrolls": list(pushforward.unrolls) if pushforward else [],
+            "module.unroll.lengths": list(unroll.lengths) if unroll else []}
+
+
+def other_settings(cfg) -> dict:
+    """What a stride leaves as it is: the model, the optimiser, the noise, the losses, the dataset, and
+    everything counted in optimiser steps."""
+    pushforward = cfg.module.get("pushforward")
+    return {"model": OmegaConf.to_container(cfg.model), "optimizer": OmegaConf.to_container(cfg.module.optimizer),
+            "scheduler": OmegaConf.to_container(cfg.module.scheduler), "noise_std": cfg.noise_std,
+            "density_weight": cfg.get("density_weight"), "early_windows": cfg.data.early_windows,
+            "root": cfg.data.root, "max_steps": cfg.trainer.max_steps,
+            "val_check_interval": cfg.trainer.val_check_interval, "max_time": cfg.trainer.max_time,
+            "pushforward": {k: list(pushforward[k]) for k in ("steps", "probs")} if pushforward else None,
+            "unroll_steps": list(cfg.module.unroll.steps) if cfg.module.get("unroll") else None,
+            "compile": cfg.module.compile, "val_trajectories": cfg.module.val_trajectories}
+
+
+def test_strided_presets_take_the_stride_one_recipes_lengths_in_time(tmp_path):
+    """A preset with data.stride = s that extends another (Hydra defaults) has its stages, stage by
+    stage, with every length in model steps ceil(n / s) of the other's n, and all else the same."""
+    strided = []
+    for path in PRESETS:
+        own = OmegaConf.load(path)
+        stride = OmegaConf.select(own, "data.stride", default=1)
+        if stride == 1:
+            continue
+        parents = [d for d in own.get("defaults", []) if isinstance(d, str) and d.startswith("/experiment/pretrain/")]
+        assert len(parents) == 1, f"{path.name}: extends no stride-1 preset through its defaults"
+        base = config_dir() / "experiment" / f"{parents[0].removeprefix('/experiment/')}.yaml"
+        assert OmegaConf.select(OmegaConf.load(base), "data.stride", default=1) == 1
+        spec, base_spec = read_preset(path), read_preset(base)
+        assert len(spec["stages"]) == len(base_spec["stages"]), path.name
+        assert {k: spec.get(k) for k in ("benchmark", "model", "dataset")} == \
+               {k: base_spec.get(k) for k in ("benchmark", "model", "dataset")}
+        for stage, base_stage in zip(spec["stages"], base_spec["stages"]):
+            cfg, reference = stage_config(path, stage, tmp_path), stage_config(base, base_stage, tmp_path)
+            assert cfg.data.stride == stride and reference.data.stride == 1
+            expected = {key: [math.ceil(n / stride) for n in values] for key, values in physical(reference).items()}
+            assert physical(cfg) == expected, f"{path.name}, stage {stage['name']}"
+            assert other_settings(cfg) == other_settings(reference), f"{path.name}, stage {stage['name']}"
+        strided.append(stride)
+    assert sorted(strided) == [2, 4]
+
+
+def test_the_default_out_folder_is_the_presets(tmp_path, monkeypatch, capsys):
+    """Without out=, a recipe writes to pretrained/<preset>_rebuilt: the stride-4 recipe neither
+    refuses over the plain recipe's result nor would it overwrite it, and the plain recipe keeps its folder."""
+    monkeypatch.chdir(tmp_path)
+    plain = tmp_path / "pretrained" / "waterdrop_gns_rebuilt" / "gns.ckpt"
+    plain.parent.mkdir(parents=True)
+    plain.write_bytes(b"the plain recipe's result")
+    common = [f"run_dir={tmp_path / 'runs'}", f"data.root={tmp_path / 'data'}"]  # data.root: nothing generated
+
+    assert stages.main(["waterdrop", "gns", *common]) == 2
+    assert "pretrained/waterdrop_gns_rebuilt/gns.ckpt exists" in capsys.readouterr().err
+
+    started = []
+    monkeypatch.setattr(stages, "run_logged", lambda command, log: started.append(command) or 1)
+    assert stages.main(["waterdrop", "gns", "preset=waterdrop_gns_stride4", *common]) == 1  # the first stage's exit
+    output = capsys.readouterr().out
+    assert "result pretrained/waterdrop_gns_stride4_rebuilt/gns.ckpt" in output
+    assert len(started) == 1 and "experiment=pretrain/waterdrop_gns_stride4" in started[0]
+    assert plain.read_bytes() == b"the plain recipe's result"

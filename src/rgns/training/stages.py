@@ -17,8 +17,9 @@ checkpoint callback's best validation, or ``last``). Each stage runs as
   on from it (``resume=``). A folder whose stage ran with other overrides is refused, not mixed.
 - SIGINT / SIGTERM: train.py finishes its step and saves ``last.ckpt``; the same command goes on.
 - At the end the last stage's pick is copied to ``<out>/<model>.ckpt`` (through a temporary file
-  renamed into place) with ``<model>.json``: the preset, each stage's overrides, pick, best validation
-  score and step, the commit, and no path of one machine (stages are named, not located).
+  renamed into place; ``out`` is by default ``pretrained/<preset>_rebuilt``, one folder per preset)
+  with ``<model>.json``: the preset, each stage's overrides, pick, best validation score and step,
+  the commit, and no path of one machine (stages are named, not located).
   An existing ``<model>.ckpt`` with other contents is kept unless ``overwrite=true``.
 
 Checkpoints are read with ``torch.load(weights_only=True)`` only, their configs checked against
@@ -205,6 +206,12 @@ def stage_result(folder: Path, pick: str) -> dict:
             "best_score": score}
 
 
+def default_out(preset_path: Path) -> Path:
+    """Where a recipe's result goes without ``out=``: ``pretrained/<preset>_rebuilt``, one folder per
+    preset (``waterdrop_gns`` and ``waterdrop_gns_stride4`` do not share one)."""
+    return Path("pretrained") / f"{preset_path.stem}_rebuilt"
+
+
 def run_recipe(benchmark: str | None, model: str | None, options: dict, extras: list[str]) -> int:
     preset_name = options.get("preset") or f"{benchmark}_{model}"
     preset_path, experiment, search_root = find_preset(preset_name)
@@ -213,7 +220,7 @@ def run_recipe(benchmark: str | None, model: str | None, options: dict, extras: 
     model = model or spec.get("model") or preset_path.stem
     seed = int(options.get("seed", 0))
     run_dir = Path(options.get("run_dir") or f"outputs/pretrain/{preset_path.stem}_seed{seed}")
-    out = Path(options.get("out") or f"pretrained/{benchmark}_{model}_rebuilt")
+    out = Path(options.get("out") or default_out(preset_path))
     overwrite = str(options.get("overwrite", "false")).lower() in ("true", "1", "yes")
     final, final_json = out / f"{model}.ckpt", out / f"{model}.json"
     stages = spec["stages"]
@@ -315,7 +322,8 @@ def run_recipe(benchmark: str | None, model: str | None, options: dict, extras: 
     last_record = records[-1]
     write_json(final_json, {
         "made_by": "rgns.training.stages (scripts/pretrain.sh): every stage of the preset from scratch",
-        "command": shlex.join(["bash", "scripts/pretrain.sh", benchmark, model, f"seed={seed}", *user]),
+        "command": shlex.join(["bash", "scripts/pretrain.sh", benchmark, model, f"seed={seed}",
+                               *([portable(f"preset={options['preset']}")] if options.get("preset") else []), *user]),
         "preset": f"conf/experiment/pretrain/{preset_path.name}" if builtin else preset_path.name,
         "experiment": experiment,
         "benchmark": benchmark,
