@@ -232,3 +232,119 @@ def test_goal_in_3d_extruded_and_run_by_the_dataset_solver(tmp_path):
     at = results["horizons"]["2"]["methods"]
     assert at["R-GNS"]["solver"]["chamfer"] is not None and at["do nothing"]["solver"]["chamfer"] is not None
     assert (tmp_path / "goal_L_K2.png").stat().st_size > 0 and (tmp_path / "goal_L_K2.gif").stat().st_size > 0
+
+
+# ---------------------------------------------------------------------------------------------- 3D views, several texts
+def closed_figures(monkeypatch) -> list:
+    """Every matplotlib figure closed from now on (the goal figure when it is saved, each frame of
+    the animation after it is drawn), recorded before it is closed."""
+    import matplotlib.pyplot as plt
+
+    closed, close = [], plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: (closed.append(fig), close(fig))[1])
+    return closed
+
+
+def panel_titles(fig) -> list[str]:
+    return [ax.get_title() for ax in fig.axes if ax.get_title()]
+
+
+def test_goal_in_3d_figure_and_animation_show_front_and_top_views(tmp_path, monkeypatch):
+    """3D: two rows of four panels per method in the figure, two panels per method in the GIF, each
+    title naming its view; the target in grey under every method panel; 2D keeps its one x-y view."""
+    import imageio.v2 as imageio
+    from matplotlib.colors import to_rgb
+
+    metadata = generated_metadata("water3d")  # gravity along -y: front = x-y, top = x-z
+    spacing = metadata["generator"]["params"]["spacing"]
+    closed = closed_figures(monkeypatch)
+    spec = GoalSpec(text="L", height=0.1, depth=2 * spacing, place="air", lift=0.1)
+    results = run_goal({"R-GNS": RGNS(metadata, latent=16, layers=2)}, metadata, spec, tmp_path, steps=[2])
+    figure = next(fig for fig in closed if fig._suptitle is not None)
+    frames = [fig for fig in closed if fig._suptitle is None]
+    methods = list(results["horizons"]["2"]["methods"])  # R-GNS, do nothing
+    titles = panel_titles(figure)
+    assert len(titles) == 2 * 4 * len(methods)  # a row per view and method, four columns (at most 6 a row)
+    assert sum("front (x-y)" in t for t in titles) == sum("top (x-z)" in t for t in titles) == 4 * len(methods)
+    grid = figure.axes[0].get_subplotspec().get_gridspec()
+    assert grid.ncols == 4 and grid.nrows == 2 * len(methods)
+    for ax in figure.axes:  # every panel but the target column: the target in light grey first, under the method
+        if not ax.get_title().startswith("target"):
+            grey = ax.collections[0].get_facecolor()[0]
+            assert np.allclose(grey[:3], to_rgb("lightgrey"))
+    assert frames and len(frames) == len(imageio.mimread(tmp_path / "goal_L_K2.gif"))
+    for fig in frames:
+        shown = panel_titles(fig)
+        assert len(shown) == 2 * len(methods) and sum("front (x-y)" in t for t in shown) == len(methods)
+        assert sum("top (x-z)" in t for t in shown) == len(methods)
+
+    # gravity along -z: the front view is x against z, the top view x-y
+    closed.clear()
+    run_goal({"recorder": Recorder()}, dict(metadata, gravity=[0.0, 0.0, -9.81]), spec, tmp_path / "z_up",
+             steps=[1], physics=False)
+    titles = panel_titles(next(fig for fig in closed if fig._suptitle is not None))
+    assert any("front (x-z)" in t for t in titles) and any("top (x-y)" in t for t in titles)
+    # 2D: one row of four per method, no view names
+    closed.clear()
+    run_goal({"recorder": Recorder()}, METADATA, GoalSpec(text="L", height=0.05, place="centre"), tmp_path / "two",
+             steps=[1], physics=False)
+    figure = next(fig for fig in closed if fig._suptitle is not None)
+    assert len(figure.axes) == 4 and not any("front" in t or "top" in t for t in panel_titles(figure))
+
+
+def tiny_water3d(root: Path) -> Path:
+    """A water3d dataset of one 4-frame trajectory per split, 20-60 particles (~9 s)."""
+    from rgns.data.generate import generate_dataset
+
+    params = OmegaConf.to_container(OmegaConf.load(CONF / "water3d.yaml"))
+    params.update(particles=[20, 60], body_size=[0.05, 0.08], capacity=256, num_bodies=[1, 1])
+    return generate_dataset(params, root, num_trajectories=1, num_frames=4, workers=1, progress=False,
+                            splits=dict(valid=1, test=1))
+
+
+def test_goal_text_list_runs_L_and_N_in_3d_as_separate_targets(tmp_path):
+    """goal.text=[L,N]: each letter extruded and mid-air, run in turn by the task, into its own
+    files and its own entry of the results; two texts that would share files are refused."""
+    from types import SimpleNamespace
+
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from rgns.evaluation.tasks import Dataset
+    from rgns.inverse.goal import GoalShaping, goal_specs
+
+    with initialize_config_dir(str(CONF.parent), version_base="1.3"):
+        cfg = compose("evaluate", overrides=["task=goal", "goal.text=[L,N]", "goal.steps=[2]", "task.goal.optimisers=null",
+                                             f"output_dir={tmp_path}", "goal.height=0.1"])
+    task = cfg.task.goal
+    root = tiny_water3d(tmp_path / "tiny3d")
+    dataset = Dataset.load(str(root), "test", 1, history=5, start=None)
+    spacing, bounds = dataset.metadata["generator"]["params"]["spacing"], np.asarray(dataset.metadata["bounds"])
+    goal = instantiate(task, _convert_="all")
+    assert [spec.text for spec in goal.specs] == ["L", "N"]
+    recorder = Recorder()
+    results, _ = goal([SimpleNamespace(label="recorder", model=recorder)], dataset)
+
+    assert list(results["targets"]) == ["L", "N"]
+    L, N = results["targets"]["L"], results["targets"]["N"]
+    assert {k: v for k, v in results.items() if k != "targets"} == L  # the first target's keys (report.md)
+    assert L["goal"]["text"] == "L" and N["goal"]["text"] == "N" and L["particles"] != N["particles"]
+    assert set(L["files"]) == {"goal_L_K2.png", "goal_L_K2.gif", "goal_L.json"}
+    assert set(N["files"]) == {"goal_N_K2.png", "goal_N_K2.gif", "goal_N.json"}
+    folder = tmp_path / f"goal_{dataset.name}"
+    for name in L["files"] + N["files"]:
+        assert (folder / name).stat().st_size > 0
+    assert json.loads((folder / "goal_N.json").read_text())["goal"]["text"] == "N"
+    assert L["physics"]["solver"] == N["physics"]["solver"] == "SPH"
+    for name in ("L", "N"):
+        assert results["targets"][name]["horizons"]["2"]["methods"]["do nothing"]["solver"]["chamfer"] is not None
+    # the states the inverse started from: L's target, then N's, each extruded along z and mid-air
+    seen = [state.position.numpy() for state in recorder.seen[::2]]  # K = 2: two inverse steps per target
+    assert [len(points) for points in seen] == [L["particles"], N["particles"]]
+    for points in seen:
+        assert points[:, 1].min() == pytest.approx(bounds[1, 0] + 0.1, abs=1e-6)  # the bottom 0.1 m above the floor
+        layers = np.unique(points[:, 2].round(6))
+        assert len(layers) == int(np.floor(0.1 / spacing + 1e-6))  # the default depth 0.1 m: floor(0.1 / h) layers
+        assert layers.mean() == pytest.approx(bounds[2].mean(), abs=1e-6)  # centred in z
+    with pytest.raises(ValueError, match="same files"):
+        goal_specs(text=["L!", "L?"])
