@@ -6,10 +6,11 @@
 #   bash scripts/pretrain.sh waterdrop gns seed=1      # GNS 64x4   (conf/experiment/pretrain/waterdrop_gns.yaml)
 #   bash scripts/pretrain.sh waterdrop rgns trainer.max_steps=20 trainer.val_check_interval=20   # a smoke run
 #   bash scripts/pretrain.sh waterdrop rgns trainer=gpu                                        # on a GPU
+#   bash scripts/pretrain.sh waterdrop gns preset=waterdrop_gns_stride4   # GNS on every 4th frame (longer steps)
 #
 # Generates the preset's dataset when missing, runs every stage (outputs/pretrain/<preset>_seed<N>/<stage>/),
 # each from the previous stage's checkpoint, skips finished stages and goes on with a stopped one when
-# run again, and writes pretrained/<benchmark>_<model>_rebuilt/<model>.ckpt with <model>.json (provenance).
+# run again, and writes pretrained/<preset>_rebuilt/<model>.ckpt with <model>.json (provenance).
 # key=value apply to every stage after the stage's own. One thread per process unless OMP_NUM_THREADS says.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -11,8 +11,9 @@ from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.evaluation.baselines import ConstantVelocity
 from rgns.evaluation.generalise import (BreakRule, Generalisation, break_picture, classify_break, condition_scene,
-                                      densest_cells, inverse_rollout, up_axis)
+                                      densest_cells, inverse_rollout)
 from rgns.evaluation.methods import Method
+from rgns.evaluation.plots import up_axis
 from rgns.evaluation.tasks import Dataset
 
 BOUNDS = torch.tensor([[0.0, 1.0], [0.0, 1.0]])

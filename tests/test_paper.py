@@ -1,4 +1,4 @@
-"""The paper's tables across benchmarks (``python -m rgns.evaluation.paper``) on tiny checkpoints:
+"""The paper's tables across benchmarks (``python -m rgns.paper``) on tiny checkpoints:
 the three tables, the ablation figure and the JSON are written; mean ± std over planted per-seed
 results; a benchmark without a dataset and a method without checkpoints are reported as not
 trained; a rerun takes every evaluation from the cache."""
@@ -17,7 +17,7 @@ import yaml
 from conftest import make_metadata, random_trajectory
 
 from rgns.data.contract import SPLITS, write_metadata, write_split
-from rgns.evaluation import paper
+from rgns import paper
 from rgns.evaluation.report import number
 
 ROOT = Path(__file__).resolve().parents[1]

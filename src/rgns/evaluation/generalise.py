@@ -52,7 +52,7 @@ from torch import Tensor
 from rgns.data.contract import KINEMATIC
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.evaluation.metrics import density_ratio, mse_per_step
-from rgns.evaluation.plots import PANELS_PER_ROW, save_figure
+from rgns.evaluation.plots import PANELS_PER_ROW, save_figure, up_axis, views
 from rgns.evaluation.tasks import Dataset, finite, mean_or_none, stride_of
 from rgns.models import State
 from rgns.training.rollouts import fill_frames
@@ -185,15 +185,6 @@ def inverse_rollout(method, position: Tensor, particle_type: Tensor, end: int, s
     return predicted
 
 
-def _views(dim: int, up: int) -> list[tuple[int, int, str]]:
-    """The projections a picture shows: ``(horizontal axis, vertical axis, name)``; a 3D scene as
-    seen from the front (first horizontal axis against ``up``) and from above."""
-    if dim == 2:
-        return [(0, 1, "")]
-    across = [a for a in range(dim) if a != up]
-    return [(across[0], up, "front"), (across[0], across[1], "top")]
-
-
 def _panel(ax, points: np.ndarray, kinematic: np.ndarray, low: np.ndarray, high: np.ndarray, colour: str,
            title: str) -> None:
     """Particles ``[N, 2]`` in the box ``low..high`` with a margin of a tenth of it; those beyond
@@ -224,12 +215,12 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
     if not breaks:
         return False
     bounds = np.asarray(bounds, dtype=float)
-    views = _views(len(bounds), up)
-    per_method = 2 * len(views)
+    projections = views(len(bounds), up)
+    per_method = 2 * len(projections)
     methods_a_row = max(1, PANELS_PER_ROW // per_method)
     columns = per_method * min(len(breaks), methods_a_row)
     rows = math.ceil(len(breaks) / methods_a_row)
-    sizes = [(bounds[v, 1] - bounds[v, 0]) / (bounds[h, 1] - bounds[h, 0]) for h, v, _ in views]
+    sizes = [(bounds[v, 1] - bounds[v, 0]) / (bounds[h, 1] - bounds[h, 0]) for h, v, _ in projections]
     fig, axes = plt.subplots(rows, columns, figsize=(2.3 * columns, rows * (2.3 * max(sizes) + 0.8) + 0.4),
                              squeeze=False)
     for ax in axes.flat:
@@ -238,7 +229,7 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
     for m, (label, broke) in enumerate(breaks.items()):
         kinematic = np.asarray(broke["particle_type"]) == KINEMATIC
         row, first = divmod(m, methods_a_row)
-        for v, (h, u, name) in enumerate(views):
+        for v, (h, u, name) in enumerate(projections):
             seen = f"\n{name} ({axis_names[h]}-{axis_names[u]})" if name else ""
             low, high = bounds[[h, u], 0], bounds[[h, u], 1]
             for p, (who, points, colour) in enumerate((
@@ -250,12 +241,6 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
     fig.suptitle(title, fontsize=9)
     save_figure(fig, path)
     return True
-
-
-def up_axis(metadata: dict) -> int:
-    """The vertical axis of a scene: the one gravity pulls along (``metadata["gravity"]``), else the second."""
-    gravity = np.abs(np.asarray(metadata.get("gravity") or [0.0, 1.0], dtype=float))
-    return int(np.argmax(gravity)) if gravity.any() else 1
 
 
 @contextlib.contextmanager

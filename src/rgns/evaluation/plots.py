@@ -411,3 +411,18 @@ def make_all(results: dict, examples: dict, out: Path, animation) -> list[str]:
                     animation.max_frames, animation.fps)
             written.append(f"inverse_{dataset}.gif")
     return written + generalise_charts(results, examples, out)
+
+
+def views(dim: int, up: int) -> list[tuple[int, int, str]]:
+    """The projections a picture shows: ``(horizontal axis, vertical axis, name)``; a 3D scene as
+    seen from the front (first horizontal axis against ``up``) and from above."""
+    if dim == 2:
+        return [(0, 1, "")]
+    across = [a for a in range(dim) if a != up]
+    return [(across[0], up, "front"), (across[0], across[1], "top")]
+
+
+def up_axis(metadata: dict) -> int:
+    """The vertical axis of a scene: the one gravity pulls along (``metadata["gravity"]``), else the second."""
+    gravity = np.abs(np.asarray(metadata.get("gravity") or [0.0, 1.0], dtype=float))
+    return int(np.argmax(gravity)) if gravity.any() else 1

@@ -64,7 +64,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.evaluation.metrics import chamfer, optimal_transport
-from rgns.evaluation.plots import save_figure, write_whole
+from rgns.evaluation.plots import save_figure, up_axis, views, write_whole
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import dataset_spacing
 from rgns.inverse.tasks import _optimiser_simulator, _warm_up, add_out_arguments, refuse_earlier_out
@@ -407,13 +407,6 @@ def _scatter(ax, points: np.ndarray, bounds: np.ndarray, colour, size: float, vi
     ax.set_yticks([])
 
 
-def _views(dim: int, up: int) -> list[tuple[int, int, str]]:
-    """What a goal picture shows: the x-y plane in 2D; in 3D the front (x against ``up``) and the top view."""
-    from rgns.evaluation.generalise import _views as views  # lazily: generalise imports pyplot
-
-    return views(dim, up)
-
-
 def _seen(view) -> str:
     """A view's name for a panel title, with its axes: ``front (x-y)``; empty in 2D."""
     across, up, name = view
@@ -438,9 +431,9 @@ def goal_figure(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, tit
     import matplotlib.pyplot as plt
 
     bounds = np.asarray(bounds)
-    views = _views(len(bounds), up)
+    projections = views(len(bounds), up)
     size = max(0.5, min(6.0, 4000 / max(len(target), 1)))
-    rows = len(runs) * len(views)
+    rows = len(runs) * len(projections)
     fig, axes = plt.subplots(rows, 4, figsize=(12, 3 * rows), squeeze=False)
     for m, run in enumerate(runs):
         status = run.extra.get("status", "feed_forward")
@@ -449,8 +442,8 @@ def goal_figure(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, tit
         titles = ["target", f"initial state ({run.seconds:.2f} s{note})" + ("\n" + "; ".join(flags) if flags else ""),
                   _chamfer_title("by the model", run.extra.get("model")),
                   _chamfer_title("by the solver", run.extra.get("solver"))]
-        for v, view in enumerate(views):
-            row = axes[m * len(views) + v]
+        for v, view in enumerate(projections):
+            row = axes[m * len(projections) + v]
             _scatter(row[0], target, bounds, "tab:blue", size, view)
             if view[2]:  # 3D: where the initial state stands against the target
                 _scatter(row[1], target, bounds, "lightgrey", size, view)
@@ -482,27 +475,27 @@ def goal_animation(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, 
     from rgns.evaluation.plots import PANELS_PER_ROW
 
     bounds = np.asarray(bounds)
-    views = _views(len(bounds), up)
+    projections = views(len(bounds), up)
     size = max(0.5, min(6.0, 4000 / max(len(target), 1)))
     shown = [(run, run.solver if run.solver is not None else run.trajectory,
               "solver" if run.solver is not None else "model") for run in runs]
     shown = [(run, frames, by) for run, frames, by in shown if frames is not None]
     if not shown:
         return
-    columns = len(shown) if len(views) == 1 else min(len(shown), PANELS_PER_ROW)  # 2D: one row, as always
-    rows = len(views) * math.ceil(len(shown) / columns)
+    columns = len(shown) if len(projections) == 1 else min(len(shown), PANELS_PER_ROW)  # 2D: one row, as always
+    rows = len(projections) * math.ceil(len(shown) / columns)
     length = max(len(frames) for _, frames, _ in shown)
     frames_at = np.unique(np.linspace(0, length - 1, min(length, max_frames)).round().astype(int))
     images = []
     for t in frames_at:
         fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.4 * rows), dpi=80, squeeze=False)
-        for ax in axes.flat[len(shown) * len(views):]:
+        for ax in axes.flat[len(shown) * len(projections):]:
             ax.set_axis_off()
         for i, (run, frames, by) in enumerate(shown):
             frame = frames[min(t, len(frames) - 1)]
             block, column = divmod(i, columns)
-            for v, view in enumerate(views):
-                ax = axes[block * len(views) + v, column]
+            for v, view in enumerate(projections):
+                ax = axes[block * len(projections) + v, column]
                 _scatter(ax, target, bounds, "lightgrey", size, view)
                 if np.isfinite(frame).all():
                     _scatter(ax, frame, bounds, "tab:blue", size, view)
@@ -567,8 +560,6 @@ def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, 
     solver, note = GroundTruthSolver.for_dataset(metadata, len(target)) if physics else (None, "No physics check (physics=false).")
     stopping = StoppingRule(**(rule or {}))
     name = file_name(spec)
-    from rgns.evaluation.generalise import up_axis  # lazily: generalise imports pyplot
-
     up = up_axis(metadata)  # the figures' vertical axis: the one gravity pulls along
     target_np, files, per_k = target.numpy(), [], {}
     for K in horizons:

@@ -1,5 +1,5 @@
 """The paper's tables across benchmarks, from checkpoints, by one command:
-``python -m rgns.evaluation.paper [key=value ...]`` (``bash scripts/paper.sh``; docs/paper.md).
+``python -m rgns.paper [key=value ...]`` (``bash scripts/paper.sh``; docs/paper.md).
 
 The manifest ``conf/paper.yaml`` lists the benchmarks, each with its test dataset and, per set of
 checkpoints (the main budget's seeds, the shipped long-trained files) and method, the globs of its
@@ -20,6 +20,9 @@ Out, in ``out_dir``:
   table, and every method without checkpoints with the reason;
 - ``paper.json``: every number and where it came from (checkpoint, seed, cache folder);
 - ``rollout_mse.png``, ``accuracy_vs_speed.png`` and ``ablation.png`` (where ablation runs exist).
+
+It runs both the evaluation and the inverse optimisers, so it sits above every layer of the
+package (README, Layout), as ``train.py`` and ``evaluate.py`` do.
 """
 from __future__ import annotations
 
@@ -485,7 +488,7 @@ def optimiser_rows(comparison: dict) -> dict:
 def build(manifest: DictConfig, argv: list[str]) -> dict:
     cache = Cache(manifest.cache_dir, bool(manifest.refresh))
     settings = OmegaConf.to_container(manifest.evaluate, resolve=True)
-    paper = dict(command=" ".join(["python -m rgns.evaluation.paper", *argv]),
+    paper = dict(command=" ".join(["python -m rgns.paper", *argv]),
                  date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                  manifest=OmegaConf.to_container(manifest, resolve=True), evaluate=settings, benchmarks={})
     for name, spec in manifest.benchmarks.items():
@@ -749,8 +752,11 @@ def write(paper: dict, manifest: DictConfig, out: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """``python -m rgns.evaluation.paper [key=value ...]``: the manifest's overrides (Hydra syntax)."""
+    """``python -m rgns.paper [key=value ...]``: the manifest's overrides (Hydra syntax)."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    if {"-h", "--help"} & set(argv):
+        print(__doc__)
+        raise SystemExit(0)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     try:
         manifest = compose_config("paper", argv)
