@@ -335,6 +335,12 @@ def test_goal_text_list_runs_L_and_N_in_3d_as_separate_targets(tmp_path):
     for name in L["files"] + N["files"]:
         assert (folder / name).stat().st_size > 0
     assert json.loads((folder / "goal_N.json").read_text())["goal"]["text"] == "N"
+    # the report: a section per target, each linking its own figures
+    from rgns.evaluation.report import goal_tables
+
+    report = "\n".join(goal_tables({"datasets": {dataset.name: {"goal": json.loads(json.dumps(results))}}}))
+    assert report.count("## Goal-conditioned shaping") == 2 and "'L'" in report and "'N'" in report
+    assert f"goal_{dataset.name}/goal_N_K2.png" in report and f"goal_{dataset.name}/goal_L_K2.png" in report
     assert L["physics"]["solver"] == N["physics"]["solver"] == "SPH"
     for name in ("L", "N"):
         assert results["targets"][name]["horizons"]["2"]["methods"]["do nothing"]["solver"]["chamfer"] is not None

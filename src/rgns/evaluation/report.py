@@ -250,40 +250,47 @@ def goal_tables(results: dict) -> list[str]:
     for name, d in results["datasets"].items():
         if "goal" not in d:
             continue
-        goal = d["goal"]
-        shape = goal["goal"]["text"] or goal["goal"]["mask"] or goal["goal"]["points"]
-        physics = goal["physics"]
-        out += ["", f"## Goal-conditioned shaping on {name}: {shape!r}", "",
-                f"Target: {goal['particles']} particles at spacing {goal['spacing']:g}, placed {goal['goal']['place']!r} "
-                f"(lift {goal['goal']['lift']:g} m), velocity {goal['velocity']} m/s at frame K ({goal['velocity_history']}). "
-                "Per K: each method's initial state run K frames by its own model (for an optimiser: its simulator) "
-                f"and by the dataset's solver ({physics['solver'] or 'none'}), the final frame against the target."]
-        if physics["note"]:
-            out += ["", physics["note"]]
-        for K, at in goal["horizons"].items():
-            methods = at["methods"]
-            rows, checks = [], []
-            for m, row in methods.items():
-                model, solver, check = row["model"] or {}, row.get("solver") or {}, row["plausibility"]
-                rows.append([m, number(model.get("chamfer"), 1e5), number(solver.get("chamfer"), 1e5),
-                             number(model.get("ot"), 1e3), number(solver.get("ot"), 1e3), number(row["seconds"]),
-                             row["status"] + (f" (solver: {solver['error']})" if solver.get("error") else "")])
-                checks.append([m, _percent(check.get("inside_box")), _percent(check.get("overlapping")),
-                               _percent(check.get("isolated")), number(check.get("max_speed")),
-                               ", ".join(number(v, digits=3) for v in check.get("mean_velocity") or []) or GAP,
-                               ", ".join(number(v, digits=3) for v in row["centre_shift"]),
-                               _percent(solver.get("clamped")), "; ".join(check["flags"]) or "none"])
-            thresholds = physics["thresholds"]
-            out += ["", f"### K = {K}", "",
-                    table(["Method", "Chamfer by model (1e-5)", "Chamfer by solver (1e-5)", "OT by model (1e-3)",
-                           "OT by solver (1e-3)", "Time (s)", "Status"], rows), "",
-                    f"Plausibility of the initial states at K = {K} (training data's max speed: "
-                    f"{number(physics['train_max_speed'])} m/s):", "",
-                    table(["Method", "Inside box (%)", f"Overlapping, NN < {thresholds['overlap']:g} h (%)",
-                           f"Isolated, NN > {thresholds['isolated']:g} h (%)", "Max speed (m/s)", "Mean velocity (m/s)",
-                           "Centre shift from the target (m)", "Clamped (%)", "Flags"],
-                          checks)]
-        out += ["", *(f"![goal {f}](goal_{name}/{f})" for f in goal["files"] if not f.endswith(".json"))]
+        for goal in (d["goal"].get("targets") or {"": d["goal"]}).values():  # goal.text=[L,N]: a section each
+            out += _goal_section(name, goal)
+    return out
+
+
+def _goal_section(name: str, goal: dict) -> list[str]:
+    """One target's tables and figures (see :func:`goal_tables`)."""
+    out = []
+    shape = goal["goal"]["text"] or goal["goal"]["mask"] or goal["goal"]["points"]
+    physics = goal["physics"]
+    out += ["", f"## Goal-conditioned shaping on {name}: {shape!r}", "",
+            f"Target: {goal['particles']} particles at spacing {goal['spacing']:g}, placed {goal['goal']['place']!r} "
+            f"(lift {goal['goal']['lift']:g} m), velocity {goal['velocity']} m/s at frame K ({goal['velocity_history']}). "
+            "Per K: each method's initial state run K frames by its own model (for an optimiser: its simulator) "
+            f"and by the dataset's solver ({physics['solver'] or 'none'}), the final frame against the target."]
+    if physics["note"]:
+        out += ["", physics["note"]]
+    for K, at in goal["horizons"].items():
+        methods = at["methods"]
+        rows, checks = [], []
+        for m, row in methods.items():
+            model, solver, check = row["model"] or {}, row.get("solver") or {}, row["plausibility"]
+            rows.append([m, number(model.get("chamfer"), 1e5), number(solver.get("chamfer"), 1e5),
+                         number(model.get("ot"), 1e3), number(solver.get("ot"), 1e3), number(row["seconds"]),
+                         row["status"] + (f" (solver: {solver['error']})" if solver.get("error") else "")])
+            checks.append([m, _percent(check.get("inside_box")), _percent(check.get("overlapping")),
+                           _percent(check.get("isolated")), number(check.get("max_speed")),
+                           ", ".join(number(v, digits=3) for v in check.get("mean_velocity") or []) or GAP,
+                           ", ".join(number(v, digits=3) for v in row["centre_shift"]),
+                           _percent(solver.get("clamped")), "; ".join(check["flags"]) or "none"])
+        thresholds = physics["thresholds"]
+        out += ["", f"### K = {K}", "",
+                table(["Method", "Chamfer by model (1e-5)", "Chamfer by solver (1e-5)", "OT by model (1e-3)",
+                       "OT by solver (1e-3)", "Time (s)", "Status"], rows), "",
+                f"Plausibility of the initial states at K = {K} (training data's max speed: "
+                f"{number(physics['train_max_speed'])} m/s):", "",
+                table(["Method", "Inside box (%)", f"Overlapping, NN < {thresholds['overlap']:g} h (%)",
+                       f"Isolated, NN > {thresholds['isolated']:g} h (%)", "Max speed (m/s)", "Mean velocity (m/s)",
+                       "Centre shift from the target (m)", "Clamped (%)", "Flags"],
+                      checks)]
+    out += ["", *(f"![goal {f}](goal_{name}/{f})" for f in goal["files"] if not f.endswith(".json"))]
     return out
 
 
