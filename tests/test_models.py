@@ -707,10 +707,9 @@ def test_rgns_refuses_to_compile_its_memory_saving_backward():
     assert not model.compiled
 
 
-@pytest.mark.parametrize("backwards", [False, True])
-def test_a_rollout_that_turns_non_finite_is_nan_from_there_not_a_crash(backwards):
-    """A model whose velocity turns NaN at its 4th step: the frames it reaches are NaN and the
-    rollout ends with NaN frames where building a radius graph of NaN positions used to raise."""
+def turns_nan(after: int = 3) -> tuple[torch.nn.Module, State]:
+    """Constant velocity whose predicted velocity turns NaN from its ``after + 1``-th call, and a
+    6 x 6 lattice of water with a 3-velocity history."""
     from rgns.evaluation.baselines import ConstantVelocity
 
     class TurnsNaN(ConstantVelocity):
@@ -724,14 +723,20 @@ def test_a_rollout_that_turns_non_finite_is_nan_from_there_not_a_crash(backwards
 
         def planted(self, velocity):
             self.calls += 1
-            return velocity if self.calls < 4 else torch.full_like(velocity, float("nan"))
+            return velocity if self.calls <= after else torch.full_like(velocity, float("nan"))
 
     metadata = dict(bounds=[[0.0, 1.0]] * 2, default_connectivity_radius=0.1, dim=2, dt=0.0025, sequence_length=20,
                     vel_mean=[0.0] * 2, vel_std=[1e-3] * 2, acc_mean=[0.0] * 2, acc_std=[1e-4] * 2)
-    model = TurnsNaN(metadata, history=3)
     axis = torch.linspace(0.3, 0.7, 6)
     position = torch.stack(torch.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
-    state = State(position, torch.full((36, 3, 2), 1e-3), torch.full((36,), WATER))
+    return TurnsNaN(metadata, history=3), State(position, torch.full((36, 3, 2), 1e-3), torch.full((36,), WATER))
+
+
+@pytest.mark.parametrize("backwards", [False, True])
+def test_a_rollout_that_turns_non_finite_is_nan_from_there_not_a_crash(backwards):
+    """A model whose velocity turns NaN at its 4th step: the frames it reaches are NaN and the
+    rollout ends with NaN frames where building a radius graph of NaN positions used to raise."""
+    model, state = turns_nan()
     frames = model.inverse_rollout(state, 12) if backwards else model.rollout(state, 12)
     finite = torch.isfinite(frames).flatten(1).all(1)
     # forward: the 4th step's frame is NaN, and the 5th step's graph would be built on it; backward: the
@@ -740,3 +745,20 @@ def test_a_rollout_that_turns_non_finite_is_nan_from_there_not_a_crash(backwards
     first_nan, last_call = (6, 6) if backwards else (3, 4)
     assert finite[:first_nan].all() and not finite[first_nan:].any()
     assert model.calls == last_call  # no step after the one whose next graph would be NaN
+
+
+def test_an_inverse_that_turns_non_finite_gets_a_nan_resimulation_not_a_crash():
+    """The inverse task's inverse-then-forward: NaN from where the inverse broke, and no forward run
+    from a state that holds NaN (its first graph would raise)."""
+    from rgns.training.rollouts import inverse_then_forward
+
+    model, state = turns_nan()
+    truth = torch.stack([state.position + 1e-3 * t for t in range(20)])  # [20, N, D]: the lattice drifting
+    inferred, resimulated = inverse_then_forward(model, truth, state.particle_type, start=4, steps=12)
+    assert inferred.shape == resimulated.shape == (12, 36, 2)
+    assert torch.isfinite(inferred[:6]).all() and torch.isnan(inferred[6:]).all()
+    assert torch.isnan(resimulated).all() and model.calls == 6
+    model, _ = turns_nan(after=10**6)  # never planted: exact both ways on the drifting lattice
+    inferred, resimulated = inverse_then_forward(model, truth, state.particle_type, start=4, steps=12)
+    assert torch.allclose(inferred, truth[4:16].flip(0), atol=1e-6)
+    assert torch.allclose(resimulated, truth[5:17], atol=1e-6)

@@ -328,26 +328,31 @@ class Simulator(nn.Module):
         :attr:`neighbour_skin` times R: the same edges as a fresh graph per step (found again
         only when some particle has moved half the skin; with the default 0, every step).
         """
-        return self._unroll(self.step, state, steps, kinematic_positions, 0, "rollout")
+        return self._unroll(self.step, state, steps, kinematic_positions, 0, "rollout")[0]
 
     @torch.no_grad()
-    def inverse_rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None) -> Tensor:
+    def inverse_rollout(self, state: State, steps: int, kinematic_positions: Tensor | None = None,
+                        return_state: bool = False) -> Tensor | tuple[Tensor, State]:
         """Positions of frames t-1, t-2, .., t-steps (going back in time), stopped as :meth:`rollout`
         stops where it collapses or turns non-finite.
 
         ``kinematic_positions [M, N, D]``: kinematic positions of frames t-1, t-2, .. (row i is frame
         t-1-i; frames past row M - 1 keep what the model infers); frames t-1 .. t-k follow from the
-        state's own velocity history, so step i places them at row i + k.
+        state's own velocity history, so step i places them at row i + k. ``return_state``: also the
+        state the rollout ended in (where it stopped, if it stopped), to run forward again from.
         """
         if not self.bidirectional:
             raise NotImplementedError(f"{type(self).__name__} simulates forward in time only")
-        return self._unroll(self.inverse_step, state, steps, kinematic_positions, self.history, "inverse rollout")
+        positions, state = self._unroll(self.inverse_step, state, steps, kinematic_positions, self.history,
+                                        "inverse rollout")
+        return (positions, state) if return_state else positions
 
     def _unroll(self, step, state: State, steps: int, kinematic_positions: Tensor | None, lag: int,
-                name: str) -> Tensor:
+                name: str) -> tuple[Tensor, State]:
         """``steps`` applications of ``step(state, known, neighbours)``; ``known``: row ``i + lag`` of
         ``kinematic_positions`` at step i where there is one. Stops at a collapse (repeats the last
-        frame) or a non-finite state (NaN from there)."""
+        frame) or a non-finite state (NaN from there). The positions ``[steps, N, D]`` and the last
+        state stepped to."""
         factor = self.collapse_factor
         limit = None if factor is None else factor * self.densest_cell(state.position, state.batch)
         neighbours = NeighbourList(self.radius, self.neighbour_skin * self.radius)
@@ -370,7 +375,7 @@ class Simulator(nn.Module):
                             steps, limit)
                 positions.extend([state.position] * (steps - i - 1))
                 break
-        return torch.stack(positions)
+        return torch.stack(positions), state
 
     def extra_repr(self) -> str:
         return f"dim={self.dim}, history={self.history}, radius={self.radius:g}, hard_walls={self.hard_walls}"

@@ -70,17 +70,18 @@ def inverse_then_forward(model, position: torch.Tensor, particle_type: torch.Ten
     """From the true state at frame ``start + steps``, infer ``steps`` frames back, then roll forward.
 
     Returns the inferred positions (frames start+steps-1 ... start, ``[steps, N, D]``) and the
-    re-simulated positions (frames start+1 ... start+steps, ``[steps, N, D]``).
+    re-simulated positions (frames start+1 ... start+steps, ``[steps, N, D]``). An inverse that turns
+    non-finite is NaN from there on, and so is its whole re-simulation (not a crash).
     """
     k, end = model.history, start + steps
     state = State.from_positions(position[end - k : end + 1], particle_type)
-    inferred = []
-    for frame in range(end - 1, start - 1, -1):
-        # the oldest velocity predicted at frame f fixes frame f - k: kinematic particles go there
-        state = model.inverse_step(state, kinematic_position=position[frame - k] if frame >= k else None)
-        inferred.append(state.position)
+    # row i of the kinematic positions: frame end - 1 - i (the oldest velocity predicted at frame f
+    # fixes frame f - k, where kinematic particles go: Simulator.inverse_rollout)
+    inferred, state = model.inverse_rollout(state, steps, position[:end].flip(0), return_state=True)
+    if not (bool(torch.isfinite(state.position).all()) and bool(torch.isfinite(state.velocity_history).all())):
+        return inferred, torch.full_like(inferred, float("nan"))  # an inverse that turned non-finite: nothing to run
     resimulated = model.rollout(state, steps, kinematic_positions=position[start + 1 : end + 1])
-    return torch.stack(inferred), resimulated
+    return inferred, resimulated
 
 
 @torch.no_grad()
