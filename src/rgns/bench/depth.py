@@ -26,26 +26,20 @@ from pathlib import Path
 
 import torch
 
-from rgns.bench.models import TRAIN_CASES, interleaved_median_ms, keep_freed_memory, scene, train_step
+from rgns.bench import models as bench_models
+from rgns.bench.models import interleaved_median_ms, keep_freed_memory, scene, train_step
 from rgns.evaluation.plots import save_figure, write_whole
 from rgns.evaluation.tasks import peak_memory_mb
-from rgns.models import RGNS, count_parameters
+from rgns.models import count_parameters
 
 CASES = {"gns": "GNS", "rgns": "R-GNS", "rgns_plain": "R-GNS, plain autograd"}  # TRAIN_CASES keys: labels
 
 
 def build(case: str, metadata: dict, latent: int, layers: int) -> tuple[torch.nn.Module, int]:
-    """The model of ``case`` (:data:`rgns.bench.models.TRAIN_CASES`) at this size, its weights moved
-    off the identity initialisation as after training, and the directions of its loss."""
-    cls, memory_saving, directions = TRAIN_CASES[case]
-    model = cls(metadata, latent=latent, layers=layers)
-    if cls is RGNS:
-        model.processor.memory_saving = memory_saving
-    generator = torch.Generator().manual_seed(layers)
-    with torch.no_grad():
-        for parameter in model.parameters():
-            parameter.add_(1e-2 * torch.randn(parameter.shape, generator=generator))
-    return model, directions
+    """The model of ``case`` (:data:`rgns.bench.models.TRAIN_CASES`) at this size, as the models
+    bench builds it (weights off the identity initialisation), the draws seeded by the depth."""
+    return bench_models.build(case, metadata, torch.device("cpu"), torch.Generator().manual_seed(layers),
+                        latent=latent, layers=layers)
 
 
 def measure(depths: list[int], latent: int, particles: int, neighbours: float, repeats: int,

@@ -112,14 +112,19 @@ def train_step(model, state: State, edge_index: torch.Tensor, directions: int) -
     loss.backward()
 
 
-def build(case: str, metadata: dict, device: torch.device):
+def build(case: str, metadata: dict, device: torch.device, generator: torch.Generator | None = None, **size):
+    """The model of ``case`` (its class's default size, or ``size``: ``latent=``, ``layers=``), its
+    weights moved off the identity initialisation as after training (by ``generator``'s draws where
+    given), and the directions of its loss."""
     cls, memory_saving, directions = TRAIN_CASES[case]
-    model = cls(metadata).to(device)
+    model = cls(metadata, **size).to(device)
     if cls is RGNS:
         model.processor.memory_saving = memory_saving
     with torch.no_grad():  # off the identity initialisation, as after training
         for parameter in model.parameters():
-            parameter.add_(1e-2 * torch.randn_like(parameter))
+            noise = torch.randn_like(parameter) if generator is None else \
+                torch.randn(parameter.shape, generator=generator).to(parameter.device)
+            parameter.add_(1e-2 * noise)
     return model, directions
 
 
