@@ -52,7 +52,7 @@ from torch import Tensor
 from rgns.data.contract import KINEMATIC
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.evaluation.metrics import density_ratio, mse_per_step
-from rgns.evaluation.plots import PANELS_PER_ROW, save_figure, up_axis, views
+from rgns.evaluation.plots import PANELS_PER_ROW, save_figure, up_axis, view_name, views
 from rgns.evaluation.tasks import Dataset, finite, mean_or_none, stride_of
 from rgns.models import State
 from rgns.training.rollouts import fill_frames
@@ -225,12 +225,12 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
                              squeeze=False)
     for ax in axes.flat:
         ax.set_axis_off()
-    axis_names = "xyz"
     for m, (label, broke) in enumerate(breaks.items()):
         kinematic = np.asarray(broke["particle_type"]) == KINEMATIC
         row, first = divmod(m, methods_a_row)
-        for v, (h, u, name) in enumerate(projections):
-            seen = f"\n{name} ({axis_names[h]}-{axis_names[u]})" if name else ""
+        for v, view in enumerate(projections):
+            h, u, name = view
+            seen = f"\n{view_name(view)}" if name else ""
             low, high = bounds[[h, u], 0], bounds[[h, u], 1]
             for p, (who, points, colour) in enumerate((
                     (f"{label}\n{broke['cause']} at step {broke['step']}\n(trajectory {broke['trajectory']}, "

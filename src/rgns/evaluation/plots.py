@@ -422,6 +422,12 @@ def views(dim: int, up: int) -> list[tuple[int, int, str]]:
     return [(across[0], up, "front"), (across[0], across[1], "top")]
 
 
+def view_name(view: tuple[int, int, str]) -> str:
+    """A view's name for a panel title, with its axes: ``front (x-y)``; empty for the 2D plane."""
+    across, up, name = view
+    return f"{name} ({'xyz'[across]}-{'xyz'[up]})" if name else ""
+
+
 def up_axis(metadata: dict) -> int:
     """The vertical axis of a scene: the one gravity pulls along (``metadata["gravity"]``), else the second."""
     gravity = np.abs(np.asarray(metadata.get("gravity") or [0.0, 1.0], dtype=float))

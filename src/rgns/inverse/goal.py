@@ -64,7 +64,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.evaluation.metrics import chamfer, optimal_transport
-from rgns.evaluation.plots import save_figure, up_axis, views, write_whole
+from rgns.evaluation.plots import save_figure, up_axis, view_name, views, write_whole
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import dataset_spacing
 from rgns.inverse.tasks import _optimiser_simulator, _warm_up, add_out_arguments, refuse_earlier_out
@@ -407,12 +407,6 @@ def _scatter(ax, points: np.ndarray, bounds: np.ndarray, colour, size: float, vi
     ax.set_yticks([])
 
 
-def _seen(view) -> str:
-    """A view's name for a panel title, with its axes: ``front (x-y)``; empty in 2D."""
-    across, up, name = view
-    return f"{name} ({'xyz'[across]}-{'xyz'[up]})" if name else ""
-
-
 def _chamfer_title(name: str, metrics: dict | None) -> str:
     if metrics is None:
         return f"{name}: none"
@@ -452,9 +446,9 @@ def goal_figure(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, tit
                 _scatter(ax, target, bounds, "lightgrey", size, view)
                 if frames is not None and np.isfinite(frames[-1]).all():
                     _scatter(ax, frames[-1], bounds, "tab:green", size, view)
-            row[0].set_ylabel(run.label + (f"\n{_seen(view)}" if view[2] else ""), fontsize=11)
+            row[0].set_ylabel(run.label + (f"\n{view_name(view)}" if view[2] else ""), fontsize=11)
             for ax, text in zip(row, titles):
-                seen = f"\n{_seen(view)}" if view[2] else ""
+                seen = f"\n{view_name(view)}" if view[2] else ""
                 ax.set_title(text + seen, fontsize=7 if (flags and ax is row[1]) or view[2] else 9)
     fig.suptitle(title)
     save_figure(fig, path)
@@ -499,7 +493,7 @@ def goal_animation(target: np.ndarray, runs: list[GoalRun], bounds, path: Path, 
                 _scatter(ax, target, bounds, "lightgrey", size, view)
                 if np.isfinite(frame).all():
                     _scatter(ax, frame, bounds, "tab:blue", size, view)
-                seen = f"\n{_seen(view)}" if view[2] else ""
+                seen = f"\n{view_name(view)}" if view[2] else ""
                 ax.set_title(f"{run.label} ({by}): frame {min(t, len(frames) - 1)}{seen}", fontsize=8)
         fig.tight_layout()
         fig.canvas.draw()
