@@ -51,6 +51,7 @@ from rgns.evaluation.report import GAP, number, steps_cell, table
 from rgns.evaluation.run import evaluate, summarise
 from rgns.evaluation.tasks import Dataset
 from rgns.inverse.tasks import compare_inverse
+from rgns.training.stages import sha256
 
 import matplotlib.pyplot as plt  # noqa: E402 - after rgns.evaluation.plots has chosen the Agg backend
 from matplotlib.ticker import NullFormatter  # noqa: E402
@@ -128,17 +129,9 @@ def key_material(cfg: DictConfig) -> dict:
 
 # -------------------------------------------------------------------------------------- the cache
 
-def file_hash(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def data_hash(root: str | Path, split: str) -> str:
     """The content of a dataset as an evaluation reads it: its metadata and the split."""
-    return hashlib.sha256((file_hash(Path(root) / "metadata.json") + file_hash(Path(root) / f"{split}.h5"))
+    return hashlib.sha256((sha256(Path(root) / "metadata.json") + sha256(Path(root) / f"{split}.h5"))
                           .encode()).hexdigest()
 
 
@@ -188,7 +181,7 @@ def checkpoint_results(path: Path, root: str, manifest: DictConfig, cache: Cache
     """``results.json`` of one checkpoint's evaluation on ``root``, from the cache when there;
     and where it came from (``cache``: its folder, ``cached``, ``seconds``)."""
     cfg = evaluation_config(manifest, str(path), root, "<out>")
-    material = dict(kind="checkpoint", checkpoint=file_hash(path), data=data_hash(root, cfg.split),
+    material = dict(kind="checkpoint", checkpoint=sha256(path), data=data_hash(root, cfg.split),
                     evaluate=key_material(cfg))
     key = Cache.key(material)
     found = cache.load(key, "results.json")
