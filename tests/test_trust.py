@@ -230,6 +230,29 @@ def test_a_signal_ends_its_block_as_stopped_whatever_the_interrupted_code_does(i
     assert signal.getsignal(signal.SIGTERM) is before  # the handler from before is back
 
 
+def test_an_evaluation_whose_signal_was_swallowed_writes_nothing_after_it(trained, tmp_path, monkeypatch):
+    """Python prints and drops an exception raised in a ``__del__`` or a weakref callback: a signal
+    handled there leaves the evaluation running, which must then stop before its first output."""
+    import rgns.evaluation.run as run_module
+    from rgns.runs import Stopped, signals_stop
+
+    def swallowing(*args, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        except BaseException:  # what a __del__ does with it
+            pass
+        return []
+
+    monkeypatch.setattr(run_module, "build_baselines", swallowing)
+    cfg = evaluate_config(tmp_path, f"ckpt_path={trained}", *QUICK)
+    with pytest.raises(Stopped), signals_stop():
+        evaluate(cfg)
+    out = Path(cfg.output_dir)
+    assert (out / "INCOMPLETE").exists()
+    assert not (out / "results.json").exists() and not (out / "report.md").exists()
+
+
 def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
     path = tmp_path / "forward.gif"
     path.write_bytes(b"old")

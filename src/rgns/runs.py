@@ -97,6 +97,14 @@ def stop_received() -> int | None:
     return _received[0] if _received else None
 
 
+def unless_stopped() -> None:
+    """Raise :class:`Stopped` again if :func:`signals_stop` has caught a signal whose exception
+    was swallowed on the way (raised inside a ``__del__`` or a weakref callback, Python only
+    prints it): called before writing outputs, so that nothing is written after a signal."""
+    if _received:
+        raise Stopped(_received[0])
+
+
 def _refusal(err: BaseException) -> BaseException | None:
     """The rgns refusal behind ``err`` (itself, or the cause Hydra's ``instantiate`` wrapped), if any."""
     from rgns.data.contract import DatasetError

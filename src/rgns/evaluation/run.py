@@ -21,7 +21,7 @@ from rgns.evaluation import plots, report
 from rgns.evaluation.methods import (build_baselines, check_fits, find_checkpoints, load_checkpoints, seed_groups,
                                      trained_on, without_hard_walls)
 from rgns.evaluation.tasks import Dataset
-from rgns.runs import stop_received
+from rgns.runs import stop_received, unless_stopped
 
 log = logging.getLogger(__name__)
 INCOMPLETE = "INCOMPLETE"  # the marker file of an evaluation that has not finished
@@ -182,12 +182,15 @@ def evaluate(cfg: DictConfig) -> dict:
         for method in compared + twins + references:  # baselines, no-hard-walls twins, references
             results["methods"].setdefault(method.label, dict(source=method.source, **method.info))
 
+    unless_stopped()  # a signal whose exception was swallowed during the tasks: nothing is written after it
     results = json.loads(json.dumps(results))  # what the file holds: str keys, no tensors
     for sections in results["datasets"].values():
         sections["summary"] = summarise(sections)
         sections["over_seeds"] = over_seeds(sections["summary"], groups)
     plots.write_whole(out / "results.json", (json.dumps(results, indent=2) + "\n").encode())
+    unless_stopped()
     charts = plots.make_all(results, examples, out, cfg.animation)
+    unless_stopped()
     plots.write_whole(out / "report.md", report.render(results, charts).encode())
     if stop_received() is None:  # after a signal nothing here can be trusted as whole (rgns.runs.signals_stop)
         marker.unlink()
