@@ -46,12 +46,16 @@ train() {  # train FOLDER MODEL STEPS CAP [EXPERIMENT] [overrides]: experiment=m
     trainer.enable_progress_bar=false data.root="$data" data.make_root="$data" data.make.scene="$benchmark" \
     hydra.run.dir="$out/$folder/$model" "$@" > "$out/$folder/$model.log" 2>&1
 }
-# the second stage of R-GNS and GNS (conf/experiment/main_stage.yaml): from the base run's best
-# checkpoint, pushes of up to 40 steps, the loss unrolled through 6, the density term
-stage() {
-  local model=$1; shift
-  train train "$model" 600 00:00:04:00 experiment=main_stage \
-    init_from="$(ls "$out/base/$model"/checkpoints/best-step*.ckpt | head -n 1)" "$@"
+# the second stage of R-GNS and GNS (conf/experiment/main_stage.yaml): from a checkpoint of the base
+# run, pushes of up to 40 steps, the loss unrolled through 6, the density term
+# from the base's checkpoint picked by PICK: best (its best validation) or last (its end: GNS's
+# validations are level from the first, every 2,500 steps, so its best is a draw of the noise: on
+# seed 0 the first, step 2,500 of 11,791; docs/main_job.md)
+stage() {  # stage MODEL PICK [overrides]
+  local model=$1 pick=$2 init; shift 2
+  if [[ $pick == last ]]; then init="$out/base/$model/checkpoints/last.ckpt"
+  else init="$(ls "$out/base/$model"/checkpoints/best-step*.ckpt | head -n 1)"; fi
+  train train "$model" 600 00:00:04:00 experiment=main_stage init_from="$init" "$@"
 }
 mkdir -p "$out/base"
 echo "== 2/3 training -> $out/train (R-GNS, then Sep-GNS | GNS; bases in $out/base; logs: <folder>/<model>.log)"
@@ -68,10 +72,10 @@ echo "== 2/3 training -> $out/train (R-GNS, then Sep-GNS | GNS; bases in $out/ba
 # GNS's decoder=pairwise, with gravity as their reference; the three-seed study in docs/main_job.md)
 rgns=(model.memory_saving=false module.compile=true model.couplings=pairwise)
 gns=(model.layers=4 module.compile=true model.decoder=pairwise)
-( train base rgns 7500 00:00:07:00 "${rgns[@]}" "$@" && stage rgns "${rgns[@]}" "$@" \
+( train base rgns 7500 00:00:07:00 "${rgns[@]}" "$@" && stage rgns best "${rgns[@]}" "$@" \
   && train train sep_gns 5000 00:00:04:00 model.layers=4 recipe=pushforward model.decoder=pairwise "$@" ) &
 first=$!
-( train base gns 15000 00:00:11:00 "${gns[@]}" recipe=pushforward "$@" && stage gns "${gns[@]}" "$@" ) &
+( train base gns 15000 00:00:11:00 "${gns[@]}" recipe=pushforward "$@" && stage gns last "${gns[@]}" "$@" ) &
 second=$!
 status=0
 wait $first || status=$?
