@@ -100,7 +100,7 @@ def test_default_data_makes_itself(tmp_path):
 
 def main_job_runs() -> list[list[str]]:
     """The train.py overrides of each run of scripts/main.sh, read from the script itself: the
-    ``train FOLDER MODEL STEPS CAP ...`` runs and the ``stage MODEL ...`` runs (``stage``'s own
+    ``train FOLDER MODEL STEPS CAP ...`` runs and the ``stage MODEL PICK ...`` runs (``stage``'s own
     steps, cap and experiment), with the script's override arrays (``rgns=(...)``) expanded."""
     import re
     import shlex
@@ -122,7 +122,7 @@ def main_job_runs() -> list[list[str]]:
             re.findall(r'train \w+ (\w+) (\d+) (\S+) ((?:(?:[\w.]+=\S+|"\$\{\w+\[@\]\}") )*)"\$@"', script)]
     steps, cap, experiment = re.search(r'train train "\$model" (\d+) (\S+) experiment=(\w+)', script).groups()
     runs += [run(experiment, model, steps, cap, extra) for model, extra in
-             re.findall(r'stage (\w+) ((?:"\$\{\w+\[@\]\}" )*)"\$@"', script)]
+             re.findall(r'stage (\w+) (?:best|last) ((?:"\$\{\w+\[@\]\}" )*)"\$@"', script)]
     return runs
 
 
