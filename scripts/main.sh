@@ -46,11 +46,10 @@ train() {  # train FOLDER MODEL STEPS CAP [EXPERIMENT] [overrides]: experiment=m
     trainer.enable_progress_bar=false data.root="$data" data.make_root="$data" data.make.scene="$benchmark" \
     hydra.run.dir="$out/$folder/$model" "$@" > "$out/$folder/$model.log" 2>&1
 }
-# the second stage of R-GNS and GNS (conf/experiment/main_stage.yaml): from a checkpoint of the base
-# run, pushes of up to 40 steps, the loss unrolled through 6, the density term
-# from the base's checkpoint picked by PICK: best (its best validation) or last (its end: GNS's
-# validations are level from the first, every 2,500 steps, so its best is a draw of the noise: on
-# seed 0 the first, step 2,500 of 11,791; docs/main_job.md)
+# the second stage of R-GNS and GNS (conf/experiment/main_stage.yaml): pushes of up to 40 steps, the
+# loss unrolled through 6, the density term; from the base run's checkpoint that PICK names: best (its
+# best validation) or last (its end: GNS's validations are level from the first, every 2,500 steps,
+# so its best is a draw of the noise: on seed 0 the first, step 2,500 of 11,791; docs/main_job.md)
 stage() {  # stage MODEL PICK [overrides]
   local model=$1 pick=$2 init; shift 2
   if [[ $pick == last ]]; then init="$out/base/$model/checkpoints/last.ckpt"

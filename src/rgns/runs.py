@@ -84,8 +84,7 @@ def signals_stop() -> Iterator[None]:
             raise Stopped(_received[0]) from err
         raise
     else:
-        if _received:
-            raise Stopped(_received[0])
+        unless_stopped()
     finally:
         _received.clear()
         for s, h in previous.items():

@@ -39,7 +39,7 @@ def build(case: str, metadata: dict, latent: int, layers: int) -> tuple[torch.nn
     """The model of ``case`` (:data:`rgns.bench.models.TRAIN_CASES`) at this size, as the models
     bench builds it (weights off the identity initialisation), the draws seeded by the depth."""
     return bench_models.build(case, metadata, torch.device("cpu"), torch.Generator().manual_seed(layers),
-                        latent=latent, layers=layers)
+                              latent=latent, layers=layers)
 
 
 def measure(depths: list[int], latent: int, particles: int, neighbours: float, repeats: int,
