@@ -30,6 +30,7 @@ from rgns.evaluation.rest import settled_pool
 from rgns.evaluation.walls import at_the_walls
 from rgns.evaluation.run import evaluate
 from rgns.evaluation.tasks import Dataset, ForwardRollout, InverseConsistency, in_parallel
+from rgns.inverse.tasks import chosen_optimisers
 from rgns.training.rollouts import forward_rollout, inverse_then_forward
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -325,6 +326,21 @@ def test_task_configs_compose_and_instantiate(task, names):
     tasks = [instantiate(c) for c in cfg.task.values()]
     assert [t.name for t in tasks] == names
     assert all(t.divergence.energy_factor == 7 for t in tasks if hasattr(t, "divergence"))
+
+
+@pytest.mark.parametrize("task", ["inverse_optimisation", "goal"])
+@pytest.mark.parametrize("override, kinds", [(None, {"sph", "mpm"}), ("optimisers=null", set()),
+                                              ("optimisers.mpm=null", {"sph"}), ("optimisers={}", {"sph", "mpm"})])
+def test_optimisers_are_left_out_by_null(tmp_path, task, override, kinds):
+    """``task.<task>.optimisers=null`` runs no optimiser and ``optimisers.mpm=null`` all but MPM, in
+    both tasks that have them (``optimisers={}`` merges into the preset's mapping: Hydra's rule, kept)."""
+    extra = [f"task.{task}.{override}"] if override else []
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("evaluate", overrides=[f"task={task}", f"output_dir={tmp_path}", *extra])
+    made = instantiate(cfg.task[task], _convert_="all")
+    chosen = made.settings["optimisers"] if task == "inverse_optimisation" else chosen_optimisers(made.optimisers)
+    assert set(chosen) - {"learned"} == kinds
+    assert all(isinstance(options, dict) for options in chosen.values())
 
 
 def test_checkpoints_are_found_under_a_sweep_folder(tmp_path):

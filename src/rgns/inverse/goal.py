@@ -67,7 +67,7 @@ from rgns.evaluation.metrics import chamfer, optimal_transport
 from rgns.evaluation.plots import save_figure, up_axis, view_name, views, write_whole
 from rgns.inverse.optimise import StoppingRule, optimise_initial_state
 from rgns.inverse.simulators import dataset_spacing
-from rgns.inverse.tasks import _optimiser_simulator, _warm_up, add_out_arguments, refuse_earlier_out
+from rgns.inverse.tasks import _optimiser_simulator, _warm_up, add_out_arguments, chosen_optimisers, refuse_earlier_out
 from rgns.models import State
 
 log = logging.getLogger(__name__)
@@ -532,7 +532,7 @@ def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, 
         out_dir: where ``goal_<name>_K<K>.{png,gif}`` and ``goal_<name>.json`` go.
         steps: K, one or several.
         optimisers: ``{kind: options}``, kind ``sph`` or ``mpm`` (see :func:`optimiser_goal`;
-            ``horizons``: only these K); ``None``: none.
+            ``horizons``: only these K); ``None``: none; a kind set to ``None``: left out.
         rule: the :class:`StoppingRule` fields every optimiser shares.
         frame: ``[N, D]`` a dataset frame to measure the spacing from, when the metadata has none.
         max_speed: the training data's largest speed (m/s), for the plausibility check (``None``: not checked).
@@ -563,8 +563,7 @@ def run_goal(models: dict, metadata: dict, spec: GoalSpec, out_dir: str | Path, 
                 log.info("%s: forward-only, skipped (no inverse)", label)
                 continue
             runs.append(feed_forward_goal(model, target_state(target, model.history, velocity), K, label))
-        for kind, options in (optimisers or {}).items():
-            options = dict(options or {})
+        for kind, options in chosen_optimisers(optimisers).items():
             if "horizons" in options and K not in options["horizons"]:
                 continue
             runs.append(optimiser_goal(kind, options, metadata, target, velocity, K, stopping))

@@ -50,6 +50,18 @@ log = logging.getLogger(__name__)
 DEFAULT_OPTIMISERS = {"sph": {}}
 
 
+def chosen_optimisers(optimisers) -> dict:
+    """The optimisers a task's configuration asks for, ``{kind: options}``: ``None`` (or an empty
+    mapping) is none, and a kind set to ``None`` is left out, so that ``task.<task>.optimisers=null``
+    and ``task.<task>.optimisers.mpm=null`` mean what they say on the command line (a Hydra override
+    ``optimisers={}`` merges into the preset's mapping instead of replacing it)."""
+    if optimisers is None:
+        return {}
+    if not hasattr(optimisers, "items"):
+        raise ValueError(f"optimisers={optimisers!r}: give a mapping {{kind: options}} (kinds sph, mpm, learned) or null")
+    return {str(kind): dict(options or {}) for kind, options in optimisers.items() if options is not None}
+
+
 def _mse(x: Tensor, y: Tensor) -> float | None:
     value = float((x.double() - y.double()).pow(2).mean())
     return value if math.isfinite(value) else None
@@ -356,12 +368,15 @@ class InverseComparison:
     """The comparison as an ``evaluate.py`` task (``task(methods, dataset) -> (results, examples)``).
 
     Args: as :func:`compare_inverse`, plus ``out_dir`` (the run folder) and ``trajectories`` (the
-    first n of the evaluation's, default 1: optimisation is slow).
+    first n of the evaluation's, default 1: optimisation is slow); ``optimisers``: ``None`` runs
+    none, a kind set to ``None`` is left out (:func:`chosen_optimisers`).
     """
 
     name = "inverse_optimisation"
 
     def __init__(self, out_dir: str, horizons=(1, 5, 10, 20, 40), trajectories: int = 1, **settings):
+        if "optimisers" in settings:  # null: none; a kind set to null: left out (chosen_optimisers)
+            settings["optimisers"] = chosen_optimisers(settings["optimisers"])
         self.out_dir, self.horizons, self.trajectories, self.settings = out_dir, list(horizons), trajectories, settings
 
     def __call__(self, methods, dataset) -> tuple[dict, dict]:
