@@ -50,7 +50,7 @@ from rgns.evaluation.plots import save_figure, write_whole
 from rgns.evaluation.report import GAP, number, steps_cell, table
 from rgns.evaluation.run import evaluate, summarise
 from rgns.evaluation.tasks import Dataset
-from rgns.inverse.tasks import compare_inverse
+from rgns.inverse.tasks import chosen_optimisers, compare_inverse
 from rgns.training.stages import sha256
 
 import matplotlib.pyplot as plt  # noqa: E402 - after rgns.evaluation.plots has chosen the Agg backend
@@ -244,8 +244,7 @@ def optimiser_results(root: str, manifest: DictConfig, cache: Cache) -> tuple[di
     """The optimisation baselines (``manifest.optimisers``) on the trajectories and horizons of
     the checkpoints' ``inverse_optimisation`` task: :func:`~rgns.inverse.tasks.compare_inverse`
     with no learned model. ``None`` where no optimiser is asked for."""
-    optimisers = {kind: dict(options or {}) for kind, options in
-                  (OmegaConf.to_container(manifest.optimisers, resolve=True) or {}).items() if options is not None}
+    optimisers = chosen_optimisers(OmegaConf.to_container(manifest.optimisers, resolve=True))
     if not optimisers:
         return None, dict(reason="no optimiser in the manifest (optimisers)")
     cfg = evaluation_config(manifest, None, root, "<out>")

@@ -103,7 +103,8 @@ def compare_inverse(models: dict, metadata: dict, trajectories: list[tuple[Tenso
         horizons: the K tried. start: t0 (default: k, the first frame with a full history).
         optimisers: ``{kind: options}`` with kind ``sph``, ``mpm`` or ``learned`` (options:
             ``lr``, ``velocity_lr``, ``clip``, ``schedule``, ``substeps`` (sph), ``model`` (learned),
-            ``horizons`` (a subset of K for this optimiser)). Default: ``{"sph": {}}``.
+            ``horizons`` (a subset of K for this optimiser)); a kind set to ``None`` is left out.
+            Default: ``{"sph": {}}``.
         rule: :class:`StoppingRule` fields, shared by every optimiser and target.
         threshold: consistency MSE under which a horizon is stable.
         table_horizon: the K of the table and the time ratio (capped by the horizons run).
@@ -114,7 +115,7 @@ def compare_inverse(models: dict, metadata: dict, trajectories: list[tuple[Tenso
             its ratio to each feed-forward model (0: skip).
         out_dir: where ``inverse_comparison.{json,md}`` and ``inverse_k_sweep.png`` go (None: nowhere).
     """
-    optimisers = DEFAULT_OPTIMISERS if optimisers is None else optimisers
+    optimisers = chosen_optimisers(DEFAULT_OPTIMISERS if optimisers is None else optimisers)
     stopping = StoppingRule(**(rule or {}))
     feed_forward = {label: m for label, m in models.items() if m.bidirectional}
     history = next(iter(models.values())).history if models else 5
@@ -147,7 +148,6 @@ def compare_inverse(models: dict, metadata: dict, trajectories: list[tuple[Tenso
                     consistency_mse=_mse(resimulated[-1][moving], position[start + K][moving]),
                     inverse_mse=_mse(result.initial_position[moving], position[start][moving])))
         for kind, options in optimisers.items():
-            options = dict(options or {})
             simulator, label = _optimiser_simulator(kind, options, metadata, models, position.shape[1], particle_type)
             solve = {k: options[k] for k in ("lr", "velocity_lr", "clip", "schedule") if k in options}
             target_velocity = position[start + 1] - position[start]
@@ -171,7 +171,6 @@ def compare_inverse(models: dict, metadata: dict, trajectories: list[tuple[Tenso
 
         if budget_iterations:  # the cost of trying: a fixed number of iterations, failure checks off
             for kind, options in optimisers.items():
-                options = dict(options or {})
                 K = max([k for k in horizons if k <= table_horizon] or horizons[:1])
                 simulator, label = _optimiser_simulator(kind, options, metadata, models, position.shape[1], particle_type)
                 if "horizons" in options and K not in options["horizons"]:
