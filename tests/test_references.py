@@ -16,7 +16,7 @@ import rgns.evaluation.run as run_module
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.data.subset import make_subset
-from rgns.evaluation.baselines import Ballistic
+from rgns.evaluation.baselines import Ballistic, dataset_obstacle_radius
 from rgns.evaluation.methods import Method
 from rgns.evaluation.references import SolverReferences, grid_substeps, metres
 from rgns.evaluation.run import evaluate
@@ -100,6 +100,60 @@ def test_ballistic_without_gravity_in_the_metadata_uses_the_mean_acceleration():
     metadata = {**make_metadata(), "acc_mean": [1e-7, -5e-5]}
     assert "gravity" not in metadata  # as in DeepMind's metadata.json
     assert Ballistic(metadata).gravity.tolist() == pytest.approx([1e-7, -5e-5])
+
+
+def ramp_state(position, ramp_from, ramp_to, spacing=0.0065, kinematic=True) -> State:
+    """Water particles at rest at ``position`` and a ramp of particles ``spacing`` apart from ``ramp_from`` to ``ramp_to``."""
+    a, b = np.asarray(ramp_from), np.asarray(ramp_to)
+    count = int(np.ceil(np.linalg.norm(b - a) / spacing)) + 1
+    ramp = a + np.linspace(0.0, 1.0, count)[:, None] * (b - a)
+    points = torch.tensor(np.concatenate([np.asarray(position), ramp]), dtype=torch.float32)
+    types = torch.cat([torch.full((len(position),), WATER), torch.full((count,), KINEMATIC if kinematic else WATER)])
+    return State(points, torch.zeros(len(points), HISTORY, 2), types)
+
+
+def test_ballistic_lands_on_a_ramp_and_stays_there():
+    model = ballistic(generator={"params": {"ramp_radius": 0.0065}})
+    assert model.obstacle_radius == 0.0065
+    # one above a level ramp, one beside it; the ramp's particles stay where they are (kinematic)
+    state = ramp_state([[0.5, 0.55], [0.8, 0.55]], [0.4, 0.5], [0.6, 0.5])
+    positions = model.rollout(state, 150)
+    assert positions[-1, 1, 1] == pytest.approx(0.1)  # beside the ramp: on the floor
+    height = positions[:, 0, 1] - 0.5
+    assert height.min() == pytest.approx(0.0065, abs=1e-6)  # on the ramp, its half thickness above the axis
+    assert height[-50:].tolist() == pytest.approx([0.0065] * 50, abs=1e-7)  # at rest there
+    assert positions[-50:, 0, 0].tolist() == pytest.approx([0.5] * 50, abs=1e-7)
+    # backwards from rest on the ramp: it stays (the floor's mirror image)
+    resting = ramp_state([[0.5, 0.5065]], [0.4, 0.5], [0.6, 0.5])
+    assert (model.inverse_rollout(resting, 10)[:, 0] == resting.position[0]).all()
+    # without kinematic particles the same start falls through to the floor
+    through = model.rollout(ramp_state([[0.5, 0.55]], [0.4, 0.5], [0.6, 0.5], kinematic=False), 150)
+    assert through[-1, 0, 1] == pytest.approx(0.1)
+
+
+def test_ballistic_slides_down_a_sloped_ramp_without_entering_it():
+    model = ballistic(generator={"params": {"ramp_radius": 0.0065}})
+    state = ramp_state([[0.5, 0.56]], [0.3, 0.6], [0.7, 0.4])  # slope 0.5, falling to the right
+    positions = model.rollout(state, 80)
+    a, b = torch.tensor([0.3, 0.6]), torch.tensor([0.7, 0.4])
+    along = ((positions[:, 0] - a) @ (b - a)) / (b - a).dot(b - a)
+    foot = a + along[:, None] * (b - a)
+    distance = (positions[:, 0] - foot).norm(dim=-1)
+    assert distance.min() >= 0.0065 - 1e-5  # never inside the ramp
+    assert positions[-1, 0, 0] > 0.52 and bool((torch.diff(along[20:]) > 0).all())  # sliding down the slope
+
+
+def test_ballistic_leaves_a_particle_inside_a_ramps_margin_where_it_is():
+    model = ballistic(generator={"params": {"ramp_radius": 0.0065}})
+    state = ramp_state([[0.5, 0.503]], [0.4, 0.5], [0.6, 0.5])  # 3 mm above the axis: inside the margin
+    assert (model.rollout(state, 20)[:, 0] == state.position[0]).all()  # not pushed out, not let further in
+
+
+def test_obstacle_radius_comes_from_the_scene_or_the_connectivity_radius():
+    assert dataset_obstacle_radius({"default_connectivity_radius": 0.015}) == pytest.approx(0.0075)
+    assert dataset_obstacle_radius({"default_connectivity_radius": 0.015,
+                                    "generator": {"params": {"ramp_radius": 0.004}}}) == 0.004
+    assert Ballistic({**make_metadata(), "gravity": [0.0, -9.81]}, obstacle_radius=0.002).obstacle_radius == 0.002
 
 
 # ---- the solver re-run ------------------------------------------------------------------------

@@ -295,6 +295,7 @@ def build_baselines(configs: dict | None, metadata: dict, history: int, device: 
     class's ``label`` (else its class name)."""
     methods = []
     for config in (configs or {}).values():
-        model = instantiate(config, metadata=metadata, history=history).to(device).eval()
+        # the metadata goes in as it is, past Hydra: its generator params hold configs with a _target_
+        model = instantiate(config, _partial_=True)(metadata=metadata, history=history).to(device).eval()
         methods.append(Method(getattr(model, "label", type(model).__name__), model, None, "baseline"))
     return methods
