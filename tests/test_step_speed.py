@@ -202,3 +202,22 @@ def test_shipped_checkpoints_step_as_before(name):
     with torch.no_grad():
         new, old = model.step(state), reference_step(model, state)
     assert float((new.position - old.position).abs().max()) < TOLERANCE * box_side(model)
+
+
+def test_new_shapes_line_times_both_precisions_twice_and_counts_the_edge_counts(capsys):
+    from rgns.bench.step import new_shapes
+
+    model = trained_like(MODELS["gns_pairwise_galilean"](2))
+    low = copy.deepcopy(model)
+    low.precision = "bfloat16"
+    state = random_state()
+    new_shapes(model, low, state, 4)
+    line = capsys.readouterr().out
+    with torch.no_grad():
+        positions, current = [], state
+        for _ in range(4):
+            current = model.step(current)
+            positions.append(current.position)
+    counts = {batched_radius_graph(p, model.radius).size(1) for p in positions}
+    assert f"a rollout of 4 steps, twice ({len(counts)} distinct edge counts" in line
+    assert line.count("then") == 2 and "fp32" in line and "bf16" in line

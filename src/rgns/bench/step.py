@@ -18,7 +18,10 @@ rollout of ``--steps``), a roofline line (the step's FLOPs, ``FlopCounterMode``,
 against a 1024-square fp32 ``torch.mm`` timed on the same thread in the same rounds), and the
 radius graph's cost per step over the true frames, fresh and from neighbour lists. ``--compile`` also
 times a compiled rollout (``Simulator.compile_network``) of ``--compile-steps`` steps, compilation
-included, against the eager one.
+included, against the eager one. ``--shapes STEPS`` times a rollout of STEPS steps in float32 and
+in bfloat16 twice each, the second pass on the same graphs as the first: a rollout meets a new
+edge count (a new shape of every edge product) at almost every step, and the second pass shows
+what a step costs once each shape has been met.
 """
 from __future__ import annotations
 
@@ -240,8 +243,27 @@ def measure(path: str, args) -> None:
     neighbour_lists(args, model.radius)
     if args.compile:
         compiled_rollout(model, state, args.compile_steps)
+    if args.shapes:
+        new_shapes(model, low, state, args.shapes)
     if args.mse:
         precision_mse(model, low, args)
+
+
+def new_shapes(model: Simulator, low: Simulator, state: State, steps: int) -> None:
+    """A rollout of ``steps`` steps in float32 and in bfloat16, each run twice in a row (the second
+    pass meets the same edge counts as the first): ms per step of each pass, and the edge counts met."""
+    line, counts = [], set()  # counts: the float32 rollout's
+    with torch.no_grad():
+        for name, simulator in (("fp32", model), ("bf16", low)):
+            passes = []
+            for _ in range(2):
+                start = time.perf_counter()
+                positions = rollout_positions(new_stepper(simulator), state, steps)
+                passes.append(1e3 * (time.perf_counter() - start) / steps)
+            if name == "fp32":
+                counts = {batched_radius_graph(p, model.radius).size(1) for p in positions}
+            line.append(f"{name} {passes[0]:.2f} then {passes[1]:.2f} ms/step")
+    print(f"  a rollout of {steps} steps, twice ({len(counts)} distinct edge counts in its graphs): " + "; ".join(line))
 
 
 def precision_mse(model: Simulator, low: Simulator, args) -> None:
@@ -313,6 +335,8 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--compile", action="store_true", help="also time a compiled rollout, compilation included")
     parser.add_argument("--compile-steps", type=int, default=300, help="also the frames of the neighbour-list line")
     parser.add_argument("--skins", type=float, nargs="*", default=[0.2, 0.5], help="neighbour-list skins (of R) timed")
+    parser.add_argument("--shapes", type=int, default=0, metavar="STEPS",
+                        help="also a rollout of STEPS steps twice in float32 and in bfloat16 (new shapes, then met ones)")
     parser.add_argument("--mse", type=int, default=0, metavar="TRAJECTORIES",
                         help="also the rollout MSE of old, new and bf16 over this many test trajectories")
     parser.add_argument("--mse-steps", type=int, default=300)
