@@ -16,7 +16,7 @@ import rgns.evaluation.run as run_module
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.data.subset import make_subset
-from rgns.evaluation.baselines import Ballistic, dataset_obstacle_radius
+from rgns.evaluation.baselines import Ballistic, Segments, dataset_obstacle_radius
 from rgns.evaluation.methods import Method
 from rgns.evaluation.references import SolverReferences, grid_substeps, metres
 from rgns.evaluation.run import evaluate
@@ -147,6 +147,24 @@ def test_ballistic_leaves_a_particle_inside_a_ramps_margin_where_it_is():
     model = ballistic(generator={"params": {"ramp_radius": 0.0065}})
     state = ramp_state([[0.5, 0.503]], [0.4, 0.5], [0.6, 0.5])  # 3 mm above the axis: inside the margin
     assert (model.rollout(state, 20)[:, 0] == state.position[0]).all()  # not pushed out, not let further in
+
+
+def test_obstacle_segments_stay_within_their_graph_of_a_batch():
+    # graph 0: a ramp of three particles and one water particle above it; graph 1: one lone kinematic
+    # particle far away, one water particle above graph 0's ramp (another scene: it must fall through);
+    # graph 2: another lone kinematic particle (two lone ones are never linked across graphs)
+    position = torch.tensor([[0.5, 0.5], [0.5065, 0.5], [0.513, 0.5], [0.5, 0.51],
+                             [0.2, 0.2], [0.5065, 0.51], [0.8, 0.8]])
+    types = torch.tensor([KINEMATIC, KINEMATIC, KINEMATIC, WATER, KINEMATIC, WATER, KINEMATIC])
+    batch = torch.tensor([0, 0, 0, 0, 1, 1, 2])
+    segments = Segments.of(position, types, batch)
+    links = {(tuple(a.tolist()), tuple(b.tolist())) for a, b, g in zip(segments.a, segments.b, segments.graph)
+             if not torch.equal(a, b)}
+    assert len(links) == 2 and all(g == 0 for a, b, g in zip(segments.a, segments.b, segments.graph) if not torch.equal(a, b))
+    end = position[[3, 5]] - torch.tensor([0.0, 0.01])  # both move 1 cm down, onto graph 0's ramp axis
+    kept = Segments(segments.a, segments.b, segments.graph, batch[[3, 5]]).keep_out(position[[3, 5]], end, 0.0065)
+    assert kept[0].tolist() == pytest.approx([0.5, 0.5065])  # held on its own graph's ramp
+    assert torch.equal(kept[1], end[1])  # graph 1 has no ramp there: it passes
 
 
 def test_obstacle_radius_comes_from_the_scene_or_the_connectivity_radius():

@@ -120,7 +120,8 @@ class Segments:
         apart = (graph[:, None] != graph[None, :]) | torch.eye(len(points), dtype=torch.bool, device=points.device)
         distance = distance.masked_fill(apart, float("inf"))
         closest = distance.min(dim=1).values  # [M]; inf for a lone particle
-        linked = torch.triu(distance <= 1.5 * torch.minimum(closest[:, None], closest[None, :]), diagonal=1)
+        linked = (distance <= 1.5 * torch.minimum(closest[:, None], closest[None, :])) & ~apart  # lone ones: inf <= inf
+        linked = torch.triu(linked, diagonal=1)
         i, j = linked.nonzero(as_tuple=True)
         return cls(torch.cat([points[i], points]), torch.cat([points[j], points]), torch.cat([graph[i], graph]), batch)
 
