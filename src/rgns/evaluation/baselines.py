@@ -140,12 +140,12 @@ class Segments:
         """``end [N, D]``, with each point that comes closer to the segments than ``radius`` and than
         ``start`` was put back on the smaller of the two distances, along the normal from its
         nearest segment point (from ``start``'s side where ``end`` lies on the segment)."""
-        _, before = self.nearest(start)
         foot, after = self.nearest(end)
+        if not bool((after < radius).any()):  # nobody within reach: the usual step, one distance pass
+            return end
+        _, before = self.nearest(start)
         allowed = torch.minimum(before, torch.full_like(before, radius))  # [N]
         into = after < allowed
-        if not bool(into.any()):
-            return end
         normal = end - foot
         on_axis = after < 1e-9
         normal = torch.where(on_axis[:, None], start - foot, normal)
