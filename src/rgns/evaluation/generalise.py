@@ -307,6 +307,9 @@ class Generalisation:
         directions: among :data:`DIRECTIONS`: ``forward`` on every condition, ``inverse`` on those
             in ``inverse_conditions`` that run.
         inverse_conditions: the conditions also rolled backwards.
+        conditions_dir: where the conditions' datasets are generated (``None``: ``<out_dir>/conditions``);
+            one folder shared by several evaluations generates each condition once (a complete dataset
+            of the same settings is reused, :func:`~rgns.data.generate.generate_dataset`).
     """
 
     name = "generalise"
@@ -315,7 +318,7 @@ class Generalisation:
 
     def __init__(self, out_dir: str, conditions=("longer", "wide_box", "more_bodies", "full"), trajectories: int = 2,
                  steps: int = 1000, seed: int = 7, references: dict | None = None, rule: dict | None = None,
-                 directions=("forward", "inverse"), inverse_conditions=("longer",)):
+                 directions=("forward", "inverse"), inverse_conditions=("longer",), conditions_dir: str | None = None):
         unknown = [c for c in [*conditions, *inverse_conditions] if c not in CONDITIONS]
         if unknown:
             raise ValueError(f"task.generalise.conditions / inverse_conditions: unknown {unknown}; known: "
@@ -327,6 +330,7 @@ class Generalisation:
         self.references = {"resolutions": [0.5], "floor_perturbation": None} if references is None else references
         self.rule = BreakRule(**(rule or {}))
         self.directions, self.inverse_conditions = [d for d in DIRECTIONS if d in directions], list(inverse_conditions)
+        self.conditions_dir = self.out_dir / "conditions" if conditions_dir is None else Path(conditions_dir)
 
     def __call__(self, methods, dataset) -> tuple[dict, dict]:
         from rgns.evaluation.references import SolverReferences
@@ -343,7 +347,7 @@ class Generalisation:
             if cfg is None:
                 results[name] = dict(skipped=what)
                 continue
-            root = self.out_dir / "conditions" / f"{dataset.name}_{name}"
+            root = self.conditions_dir / f"{dataset.name}_{name}"
             frames = dataset.start + self.steps + 1  # every condition as long as the rollouts
             log.info("generalise: %s: %s (generating %s)", name, what, root)
             generate_dataset(cfg, root, num_frames=frames, seed=self.seed, workers=1, progress=False,
