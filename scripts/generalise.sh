@@ -11,7 +11,5 @@
 # Writes outputs/paper/generalise/generalise.md, generalise.json and generalise.png.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1} PYTHONWARNINGS=${PYTHONWARNINGS:-ignore}
-python=${PYTHON:-.venv/bin/python}
-[ -x "$python" ] || python=python3
-exec "$python" -m rgns.failures "$@"
+source scripts/lib.sh
+python_module rgns.failures "$@"

@@ -1,4 +1,4 @@
-# Shared by the job scripts (sourced): the benchmark argument and runs two at a time.
+# Shared by the job scripts (sourced): the benchmark argument, runs two at a time, python -m.
 
 # is_benchmark WORD: WORD names a training scene (conf/scene/WORD.yaml, not a *_full preset)
 is_benchmark() {
@@ -23,4 +23,13 @@ two_lanes() {
   wait $first || status=$?
   wait $second || status=$?
   return $status
+}
+
+# python_module MODULE [ARGS]: exec `python -m MODULE ARGS`, one thread per process unless the
+# environment says otherwise, with .venv's python where set up (PYTHON overrides)
+python_module() {
+  export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1} PYTHONWARNINGS=${PYTHONWARNINGS:-ignore}
+  local python=${PYTHON:-.venv/bin/python}
+  [ -x "$python" ] || python=python3
+  exec "$python" -m "$@"
 }

@@ -11,7 +11,5 @@
 # number) and the charts. One thread per process unless OMP_NUM_THREADS says.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MKL_NUM_THREADS=${MKL_NUM_THREADS:-1} PYTHONWARNINGS=${PYTHONWARNINGS:-ignore}
-python=${PYTHON:-.venv/bin/python}
-[ -x "$python" ] || python=python3
-exec "$python" -m rgns.paper "$@"
+source scripts/lib.sh
+python_module rgns.paper "$@"

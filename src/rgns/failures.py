@@ -23,23 +23,20 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
-import time
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
 
 from rgns.evaluation.generalise import Generalisation, condition_scene
 from rgns.evaluation.methods import build_baselines
 from rgns.evaluation.plots import save_figure, write_whole
-from rgns.evaluation.report import GAP, number, table
+from rgns.evaluation.report import GAP, span, table
 from rgns.evaluation.run import evaluate
 from rgns.evaluation.tasks import Dataset
-from rgns.paper import (NOT_TRAINED, Cache, cell, compose_config, data_hash, find_runs, flatten, override_value,
-                        statistics)
+from rgns.paper import (NOT_TRAINED, Cache, cell, compose_config, data_hash, find_runs, flatten, missing_dataset,
+                        override_value, read_manifest, statistics)
 from rgns.training.stages import sha256
 
 import matplotlib.pyplot as plt  # noqa: E402 - after rgns.evaluation.plots has chosen the Agg backend
@@ -104,19 +101,12 @@ def run_results(checkpoint: str, root: str, settings: dict, manifest: DictConfig
     """``results.json`` of one checkpoint's ``task=generalise`` on ``root`` (from the cache when
     there), and where it came from."""
     material = dict(kind="generalise", checkpoint=sha256(checkpoint), **settings_key(root, settings, manifest))
-    key = Cache.key(material)
-    found = cache.load(key, "results.json")
-    if found is not None:
-        return found, dict(cache=str(cache.folder / key), cached=True, seconds=None)
-    begin = time.perf_counter()
-    log.info("generalise: %s on %s", checkpoint, root)
 
     def make(folder: Path) -> None:
+        log.info("generalise: %s on %s", checkpoint, root)
         evaluate(checkpoint_config(manifest, checkpoint, root, str(folder), settings, conditions))
 
-    folder = cache.fill(key, dict(material, first_path=checkpoint), make)
-    return json.loads((folder / "results.json").read_text()), dict(
-        cache=str(folder), cached=False, seconds=time.perf_counter() - begin)
+    return cache.obtain(material, "results.json", make, dict(material, first_path=checkpoint))
 
 
 def yardstick_results(root: str, settings: dict, manifest: DictConfig, cache: Cache,
@@ -127,16 +117,11 @@ def yardstick_results(root: str, settings: dict, manifest: DictConfig, cache: Ca
     history = int(manifest.history)
     material = dict(kind="generalise_yardsticks", history=history, references=references,
                     **settings_key(root, settings, manifest))
-    key = Cache.key(material)
-    found = cache.load(key, "generalise.json")
-    if found is not None:
-        return found, dict(cache=str(cache.folder / key), cached=True, seconds=None)
-    begin = time.perf_counter()
-    log.info("generalise: yardsticks on %s", root)
 
     def make(folder: Path) -> None:
         import torch
 
+        log.info("generalise: yardsticks on %s", root)
         torch.set_num_threads(1)
         cfg = compose_config("evaluate", [])
         dataset = Dataset.load(root, "test", 1, history, int(manifest.evaluate.start), "cpu")
@@ -145,9 +130,7 @@ def yardstick_results(root: str, settings: dict, manifest: DictConfig, cache: Ca
         section, _ = task(baselines, dataset)
         write_whole(folder / "generalise.json", (json.dumps(section, indent=2) + "\n").encode())
 
-    folder = cache.fill(key, material, make)
-    return json.loads((folder / "generalise.json").read_text()), dict(
-        cache=str(folder), cached=False, seconds=time.perf_counter() - begin)
+    return cache.obtain(material, "generalise.json", make)
 
 
 def generalise_section(results: dict, where: str) -> tuple[str, dict, dict]:
@@ -179,10 +162,9 @@ def benchmark(name: str, spec: DictConfig, manifest: DictConfig, cache: Cache) -
     g = manifest.generalise
     root = str(spec.data)
     out = dict(data=root, set=g.set, methods={}, evaluations=[])
-    missing = [f for f in ("metadata.json", "test.h5") if not (Path(root) / f).is_file()]
+    missing = missing_dataset(spec)
     if missing:
-        out.update(status=NOT_TRAINED, reason=f"no dataset: {root} lacks {', '.join(missing)}"
-                   + (f" (make it: `{spec.make}`)" if spec.get("make") else ""))
+        out.update(status=NOT_TRAINED, reason=missing)
         return out
     settings = task_settings(manifest, name)
     generator = json.loads((Path(root) / "metadata.json").read_text()).get("generator")
@@ -302,11 +284,6 @@ def run_cell(summary: dict | None) -> str:
     return f"{mse}; {broke}, first: {first['cause']} at {first['step']}"
 
 
-def _span(values: list[int]) -> str:
-    low, high = min(values), max(values)
-    return f"{low:,}" if low == high else f"{low:,}-{high:,}"
-
-
 def label_of(key: str, entry: dict | None) -> str:
     if entry is None:  # a yardstick: its own label
         return key
@@ -323,7 +300,7 @@ def benchmark_lines(name: str, bench: dict) -> list[str]:
     ran = [c for c, e in conditions.items() if e["forward"]]
     out += [f"Set `{bench['set']}`; {s.get('trajectories')} trajector{'y' if s.get('trajectories') == 1 else 'ies'} per condition, {s.get('steps')} steps from frame "
             f"{bench['start']}, generated with seed {s.get('seed')}. Conditions:", ""]
-    out += [f"- {c}: {e['description']}" + (f" ({_span(e['particles'])} particles)" if e.get("particles") else "")
+    out += [f"- {c}: {e['description']}" + (f" ({span(e['particles'])} particles)" if e.get("particles") else "")
             for c, e in conditions.items()]
     keys = list(dict.fromkeys(k for c in ran for k in conditions[c]["forward"]))
     rows = [[label_of(k, bench["methods"].get(k)), *(run_cell(conditions[c]["forward"].get(k)) for c in ran)] for k in keys]
@@ -396,15 +373,7 @@ def chart(paper: dict, path: Path) -> bool:
 
 def main(argv: list[str] | None = None) -> dict:
     """``python -m rgns.failures [key=value ...]``: conf/paper.yaml's overrides (Hydra syntax)."""
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if {"-h", "--help"} & set(argv):
-        print(__doc__)
-        raise SystemExit(0)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    try:
-        manifest = compose_config("paper", argv)
-    except HydraException as error:
-        raise SystemExit(f"error: conf/paper.yaml: {' '.join(str(error).split())}") from None
+    manifest, argv = read_manifest(argv, __doc__)
     g = manifest.generalise
     cache = Cache(manifest.cache_dir, bool(manifest.refresh))
     chosen = list(g.only) if g.get("only") else list(manifest.benchmarks)

@@ -157,6 +157,19 @@ class Cache:
             log.warning("%s: unreadable (%s); evaluating again", path, error)
             return None
 
+    def obtain(self, material: dict, name: str, make, recorded: dict | None = None) -> tuple[dict, dict]:
+        """The JSON file ``name`` of the entry keyed by ``material``: from the cache when there, else
+        written by ``make(folder)`` (:meth:`fill`; ``recorded``, default ``material``, as its
+        ``key.json``); and where it came from (``cache``: its folder, ``cached``, ``seconds``)."""
+        key = self.key(material)
+        found = self.load(key, name)
+        if found is not None:
+            return found, dict(cache=str(self.folder / key), cached=True, seconds=None)
+        begin = time.perf_counter()
+        folder = self.fill(key, material if recorded is None else recorded, make)
+        return json.loads((folder / name).read_text()), dict(
+            cache=str(folder), cached=False, seconds=time.perf_counter() - begin)
+
     def fill(self, key: str, material: dict, make) -> Path:
         """``make(folder)`` writes into a fresh temporary folder, which becomes ``<key>/``."""
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -183,20 +196,13 @@ def checkpoint_results(path: Path, root: str, manifest: DictConfig, cache: Cache
     cfg = evaluation_config(manifest, str(path), root, "<out>")
     material = dict(kind="checkpoint", checkpoint=sha256(path), data=data_hash(root, cfg.split),
                     evaluate=key_material(cfg))
-    key = Cache.key(material)
-    found = cache.load(key, "results.json")
-    if found is not None:
-        return found, dict(cache=str(cache.folder / key), cached=True, seconds=None)
-    begin = time.perf_counter()
-    log.info("evaluating %s on %s", path, root)
 
     def make(folder: Path) -> None:
+        log.info("evaluating %s on %s", path, root)
         cfg.output_dir = str(folder)
         evaluate(cfg)
 
-    folder = cache.fill(key, dict(material, first_path=str(path)), make)
-    return json.loads((folder / "results.json").read_text()), dict(
-        cache=str(folder), cached=False, seconds=time.perf_counter() - begin)
+    return cache.obtain(material, "results.json", make, dict(material, first_path=str(path)))
 
 
 def yardstick_results(root: str, manifest: DictConfig, cache: Cache) -> tuple[dict, dict]:
@@ -209,16 +215,11 @@ def yardstick_results(root: str, manifest: DictConfig, cache: Cache) -> tuple[di
                     **{k: plain.get(k) for k in ("split", "trajectories", "start", "device", "threads", "precision",
                                                  "baselines", "references", "divergence")},
                     forward=plain["task"]["forward"])
-    key = Cache.key(material)
-    found = cache.load(key, "yardsticks.json")
-    if found is not None:
-        return found, dict(cache=str(cache.folder / key), cached=True, seconds=None)
-    begin = time.perf_counter()
-    log.info("yardsticks on %s", root)
 
     def make(folder: Path) -> None:
         import torch
 
+        log.info("yardsticks on %s", root)
         torch.set_num_threads(cfg.threads)
         dataset = Dataset.load(root, cfg.split, cfg.trajectories, history, cfg.start, cfg.device)
         baselines = build_baselines(cfg.baselines, dataset.metadata, history, cfg.device)
@@ -235,9 +236,7 @@ def yardstick_results(root: str, manifest: DictConfig, cache: Cache) -> tuple[di
         sections["summary"] = summarise(sections)
         write_whole(folder / "yardsticks.json", (json.dumps(sections, indent=2) + "\n").encode())
 
-    folder = cache.fill(key, material, make)
-    return json.loads((folder / "yardsticks.json").read_text()), dict(
-        cache=str(folder), cached=False, seconds=time.perf_counter() - begin)
+    return cache.obtain(material, "yardsticks.json", make)
 
 
 def optimiser_results(root: str, manifest: DictConfig, cache: Cache) -> tuple[dict | None, dict]:
@@ -252,25 +251,18 @@ def optimiser_results(root: str, manifest: DictConfig, cache: Cache) -> tuple[di
     material = dict(kind="optimisers", data=data_hash(root, cfg.split), split=cfg.split, start=cfg.start,
                     history=int(manifest.history), optimisers=optimisers,
                     **{k: task.get(k) for k in ("horizons", "trajectories", "rule", "threshold", "table_horizon")})
-    key = Cache.key(material)
-    found = cache.load(key, "inverse_comparison.json")
-    if found is not None:
-        return found, dict(cache=str(cache.folder / key), cached=True, seconds=None)
-    begin = time.perf_counter()
-    log.info("optimisers %s on %s", ", ".join(optimisers), root)
 
     def make(folder: Path) -> None:
         import torch
 
+        log.info("optimisers %s on %s", ", ".join(optimisers), root)
         torch.set_num_threads(cfg.threads)
         dataset = Dataset.load(root, cfg.split, task["trajectories"], int(manifest.history), cfg.start, cfg.device)
         compare_inverse({}, dataset.metadata, dataset.trajectories, task["horizons"], start=dataset.start,
                         optimisers=optimisers, rule=task.get("rule"), threshold=task["threshold"],
                         table_horizon=task["table_horizon"], out_dir=folder)
 
-    folder = cache.fill(key, material, make)
-    return json.loads((folder / "inverse_comparison.json").read_text()), dict(
-        cache=str(folder), cached=False, seconds=time.perf_counter() - begin)
+    return cache.obtain(material, "inverse_comparison.json", make)
 
 
 # -------------------------------------------------------------------------------- runs and numbers
@@ -417,15 +409,23 @@ def yardstick_numbers(sections: dict) -> dict:
     return out
 
 
+def missing_dataset(spec: DictConfig) -> str | None:
+    """Why a benchmark of the manifest cannot be evaluated for want of its test dataset (and how to
+    make it), or ``None`` where ``spec.data`` holds one."""
+    missing = [f for f in ("metadata.json", "test.h5") if not (Path(spec.data) / f).is_file()]
+    if not missing:
+        return None
+    return (f"no dataset: {spec.data} lacks {', '.join(missing)}"
+            + (f" (make it: `{spec.make}`)" if spec.get("make") else ""))
+
+
 def benchmark(name: str, spec: DictConfig, manifest: DictConfig, cache: Cache) -> dict:
     """Every set, method, yardstick, optimiser and ablation variant of one benchmark."""
     root = str(spec.data)
     out = dict(data=root, sets={}, ablation={})
-    missing = [f for f in ("metadata.json", "test.h5") if not (Path(root) / f).is_file()]
+    missing = missing_dataset(spec)
     if missing:
-        out["status"] = NOT_TRAINED
-        out["reason"] = (f"no dataset: {root} lacks {', '.join(missing)}" +
-                         (f" (make it: `{spec.make}`)" if spec.get("make") else ""))
+        out.update(status=NOT_TRAINED, reason=missing)
         return out
     out["status"] = "evaluated"
     provenance: list[dict] = []
@@ -743,17 +743,24 @@ def write(paper: dict, manifest: DictConfig, out: Path) -> list[str]:
     return charts
 
 
-def main(argv: list[str] | None = None) -> dict:
-    """``python -m rgns.paper [key=value ...]``: the manifest's overrides (Hydra syntax)."""
+def read_manifest(argv: list[str] | None, usage: str) -> tuple[DictConfig, list[str]]:
+    """The command line of a command over ``conf/paper.yaml`` (``rgns.paper``, ``rgns.failures``):
+    ``usage`` printed for -h / --help, logging set up, and the manifest with the overrides
+    (Hydra syntax; a bad one ends the command with one line naming it); and the arguments."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if {"-h", "--help"} & set(argv):
-        print(__doc__)
+        print(usage)
         raise SystemExit(0)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     try:
-        manifest = compose_config("paper", argv)
-    except HydraException as error:  # a bad override: one line naming it
+        return compose_config("paper", argv), argv
+    except HydraException as error:
         raise SystemExit(f"error: conf/paper.yaml: {' '.join(str(error).split())}") from None
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """``python -m rgns.paper [key=value ...]``: the manifest's overrides (Hydra syntax)."""
+    manifest, argv = read_manifest(argv, __doc__)
     paper = build(manifest, argv)
     out = Path(manifest.out_dir)
     write(paper, manifest, out)

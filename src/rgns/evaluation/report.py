@@ -320,7 +320,7 @@ def generalise_tables(results: dict) -> list[str]:
         ran = [c for c, r in conditions.items() if "methods" in r]
         backwards = [c for c, r in conditions.items() if "inverse" in r]
         out += [f"- {c}: {r.get('description') or r.get('skipped')}"
-                + (f" ({_span(r['particles'])} particles)" if r.get("particles") else "")
+                + (f" ({span(r['particles'])} particles)" if r.get("particles") else "")
                 + ("" if c in ran else " (backwards only)" if c in backwards else " (not run)")
                 for c, r in conditions.items()]
         labels = list(dict.fromkeys(label for c in ran for label in conditions[c]["methods"]))
@@ -370,7 +370,7 @@ def generalise_inverse_table(name: str, settings: dict, inverse: dict, order=())
     without = {label: why for r in inverse.values() for label, why in r["without_inverse"].items()}
     return ["", f"### Backwards in time on {name}", "",
             f"Every method with an inverse rolled back {settings['steps']} steps (fewer where a trajectory is shorter) "
-            f"from the last frame of each trajectory (frame {_span(frames)}), the truth run backwards as the "
+            f"from the last frame of each trajectory (frame {span(frames)}), the truth run backwards as the "
             "reference, "
             "its breaks named by the same rules: speeds are the distances between consecutive frames either way, so "
             "exploded is a kinetic energy far above the true past's greatest and stalled an inferred past at rest "
@@ -379,7 +379,7 @@ def generalise_inverse_table(name: str, settings: dict, inverse: dict, order=())
             *(f"- {label}: no inverse ({why})" for label, why in without.items())]
 
 
-def _span(values: list[int]) -> str:
+def span(values: list[int]) -> str:
     low, high = min(values), max(values)
     return f"{low}" if low == high else f"{low}-{high}"
 
