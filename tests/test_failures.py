@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from test_paper import table_rows
 from test_references import tiny
 
 from rgns import failures
@@ -65,20 +66,6 @@ def run(trained, tmp_path: Path) -> dict:
         "generalise.task.steps=6"])
 
 
-def rows(markdown: str, heading: str) -> dict[str, dict[str, str]]:
-    """The first table after the line ``heading``: {first cell of each row: {column: cell}}."""
-    lines = markdown.split(heading, 1)[1].splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
-    block = []
-    for line in lines[start:]:
-        if not line.startswith("|"):
-            break
-        if not line.startswith("|---"):
-            block.append([c.strip() for c in line.strip().strip("|").split("|")])
-    header, *body = block
-    return {row[0]: dict(zip(header[1:], row[1:])) for row in body}
-
-
 def test_runs_on_shared_conditions_mean_std_yardsticks_and_a_cached_rerun(trained, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     evaluated = []
@@ -116,12 +103,12 @@ def test_runs_on_shared_conditions_mean_std_yardsticks_and_a_cached_rerun(traine
     assert summary["rollout_mse"]["std"] == pytest.approx(np.std(values, ddof=1))
 
     markdown = (out / "generalise.md").read_text()
-    forward = rows(markdown, "## waterdrop")
+    forward = table_rows(markdown, "## waterdrop")
     (rgns_row,) = [r for label, r in forward.items() if label.startswith("R-GNS (")]
     assert rgns_row["longer"].startswith(cell(summary["rollout_mse"], 1e3))
     assert "ramps_outside" not in rgns_row  # skipped on a scene without ramps: no column
     assert {"Const. velocity", "Ballistic + walls", "MPM 32 cells/m"} <= set(forward)
-    backward = rows(markdown, "Backwards in time")
+    backward = table_rows(markdown, "Backwards in time")
     (gns_row,) = [r for label, r in backward.items() if label.startswith("GNS (")]
     assert gns_row["longer"] == "no inverse" and backward["MPM 32 cells/m"]["longer"] == "no inverse"
     (rgns_back,) = [r for label, r in backward.items() if label.startswith("R-GNS (")]
