@@ -41,6 +41,7 @@ import contextlib
 import copy
 import logging
 import math
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -221,7 +222,10 @@ def break_picture(breaks: dict, bounds: Tensor, up: int, title: str, path: Path)
     columns = per_method * min(len(breaks), methods_a_row)
     rows = math.ceil(len(breaks) / methods_a_row)
     sizes = [(bounds[v, 1] - bounds[v, 0]) / (bounds[h, 1] - bounds[h, 0]) for h, v, _ in projections]
-    fig, axes = plt.subplots(rows, columns, figsize=(2.3 * columns, rows * (2.3 * max(sizes) + 0.8) + 0.4),
+    width = 2.3 * columns
+    title = textwrap.fill(title, max(30, int(12 * width)))  # about 12 characters an inch at 9 points
+    lines = title.count("\n") + 1
+    fig, axes = plt.subplots(rows, columns, figsize=(width, rows * (2.3 * max(sizes) + 0.8) + 0.25 + 0.15 * lines),
                              squeeze=False)
     for ax in axes.flat:
         ax.set_axis_off()
