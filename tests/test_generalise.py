@@ -10,7 +10,7 @@ import torch
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.evaluation.baselines import ConstantVelocity
-from rgns.evaluation.generalise import (BreakRule, Generalisation, break_picture, classify_break, condition_scene,
+from rgns.evaluation.generalise import (HALF_GRID, BreakRule, Generalisation, break_picture, classify_break, condition_scene,
                                       densest_cells, inverse_rollout)
 from rgns.evaluation.methods import Method
 from rgns.evaluation.plots import up_axis
@@ -165,6 +165,35 @@ def test_the_task_rolls_methods_out_on_each_condition_in_its_box(tmp_path):
     assert torch.allclose(method.model.bounds, torch.tensor([[0.1, 0.5], [0.1, 0.5]]))  # and back
     at, frame = examples["wide_box"]["predicted"]["Const. velocity"]
     assert frame.shape[1] == 2 and 0 <= at < 8
+
+
+def test_no_references_means_no_solver_run(tmp_path, monkeypatch):
+    """references=None (what rgns.failures asks of each run's evaluation: it measures the solver
+    once per benchmark) rolls out the methods alone; the default is the solver at half its grid."""
+    import rgns.evaluation.references as references_module
+
+    cfg = scene_config("waterdrop")
+    cfg["splits"] = {"train": 1, "valid": 1, "test": 1}
+    root = generate_dataset(cfg, tmp_path / "waterdrop", num_frames=14, seed=3, workers=1, progress=False)
+    dataset = Dataset.load(str(root), "test", 1, 5, None)
+    method = Method("Const. velocity", ConstantVelocity(dataset.metadata, history=5), None, "baseline")
+    built = []
+    real = references_module.SolverReferences
+
+    class Counting(real):
+        def __init__(self, *args, **kwargs):
+            built.append(kwargs)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(references_module, "SolverReferences", Counting)
+    for references, rows in ((None, {"Const. velocity"}), ({}, {"Const. velocity"}),
+                             (HALF_GRID, {"Const. velocity", "MPM 32 cells/m"})):
+        task = Generalisation(str(tmp_path / "out"), conditions=["longer"], trajectories=1, steps=4,
+                              directions=["forward"], references=references)
+        results, _ = task([method], dataset)
+        assert set(results["conditions"]["longer"]["methods"]) == rows
+    assert len(built) == 1  # the solver was built for the default only
+    assert Generalisation("unused").references == HALF_GRID
 
 
 def test_evaluate_task_generalise_writes_the_table_and_the_charts(tmp_path, monkeypatch):

@@ -62,6 +62,7 @@ log = logging.getLogger(__name__)
 
 CAUSES = ("non-finite", "left the box", "exploded", "compressed", "stalled")
 CONDITIONS = ("longer", "wide_box", "more_bodies", "full", "ramps_outside")
+HALF_GRID = {"resolutions": [0.5], "floor_perturbation": None}  # the default solver reference: half its grid
 DIRECTIONS = ("forward", "inverse")
 
 
@@ -306,7 +307,9 @@ class Generalisation:
         steps: rollout steps from the dataset's start frame (capped by each trajectory's length),
             and back from each trajectory's last frame.
         seed: of the conditions' generation.
-        references: the conditions' solver references (``SolverReferences`` arguments); ``None``: none.
+        references: the conditions' solver references (``SolverReferences`` arguments; by default
+            the solver at half its grid); ``None`` or empty: none (``rgns.failures`` measures them
+            once per benchmark, not in every run's evaluation).
         rule: :class:`BreakRule` fields.
         directions: among :data:`DIRECTIONS`: ``forward`` on every condition, ``inverse`` on those
             in ``inverse_conditions`` that run.
@@ -321,7 +324,7 @@ class Generalisation:
     strided = True  # rollouts through Method.forward_rollout, which steps a strided model at its stride
 
     def __init__(self, out_dir: str, conditions=("longer", "wide_box", "more_bodies", "full"), trajectories: int = 2,
-                 steps: int = 1000, seed: int = 7, references: dict | None = None, rule: dict | None = None,
+                 steps: int = 1000, seed: int = 7, references: dict | None = HALF_GRID, rule: dict | None = None,
                  directions=("forward", "inverse"), inverse_conditions=("longer",), conditions_dir: str | None = None):
         unknown = [c for c in [*conditions, *inverse_conditions] if c not in CONDITIONS]
         if unknown:
@@ -331,7 +334,7 @@ class Generalisation:
             raise ValueError(f"task.generalise.directions={list(directions)}: one or both of {', '.join(DIRECTIONS)}")
         self.out_dir, self.conditions, self.trajectories = Path(out_dir), list(conditions), int(trajectories)
         self.steps, self.seed = int(steps), int(seed)
-        self.references = {"resolutions": [0.5], "floor_perturbation": None} if references is None else references
+        self.references = references if references else None
         self.rule = BreakRule(**(rule or {}))
         self.directions, self.inverse_conditions = [d for d in DIRECTIONS if d in directions], list(inverse_conditions)
         self.conditions_dir = self.out_dir / "conditions" if conditions_dir is None else Path(conditions_dir)
