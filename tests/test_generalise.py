@@ -10,8 +10,8 @@ import torch
 from rgns.data.contract import KINEMATIC, WATER
 from rgns.data.generate import generate_dataset, scene_config
 from rgns.evaluation.baselines import ConstantVelocity
-from rgns.evaluation.generalise import (HALF_GRID, BreakRule, Generalisation, break_picture, classify_break, condition_scene,
-                                      densest_cells, inverse_rollout)
+from rgns.evaluation.generalise import (HALF_GRID, BreakRule, Generalisation, break_picture, classify_break,
+                                      condition_scene, densest_cells, inverse_rollout)
 from rgns.evaluation.methods import Method
 from rgns.evaluation.plots import up_axis
 from rgns.evaluation.tasks import Dataset
@@ -137,11 +137,18 @@ def test_a_condition_is_generated_the_same_twice(tmp_path):
         assert a[key]["position"][()][..., 0].max() > 0.5  # bodies drawn across the wide box
 
 
-def test_the_task_rolls_methods_out_on_each_condition_in_its_box(tmp_path):
+@pytest.fixture(scope="module")
+def waterdrop_test(tmp_path_factory) -> Dataset:
+    """A generated waterdrop test split of one 14-frame trajectory, from frame 5."""
     cfg = scene_config("waterdrop")
     cfg["splits"] = {"train": 1, "valid": 1, "test": 1}
-    root = generate_dataset(cfg, tmp_path / "waterdrop", num_frames=14, seed=3, workers=1, progress=False)
-    dataset = Dataset.load(str(root), "test", 1, 5, None)
+    root = generate_dataset(cfg, tmp_path_factory.mktemp("data") / "waterdrop", num_frames=14, seed=3, workers=1,
+                            progress=False)
+    return Dataset.load(str(root), "test", 1, 5, None)
+
+
+def test_the_task_rolls_methods_out_on_each_condition_in_its_box(tmp_path, waterdrop_test):
+    dataset = waterdrop_test
     seen = []
 
     class Recording(ConstantVelocity):
@@ -167,15 +174,12 @@ def test_the_task_rolls_methods_out_on_each_condition_in_its_box(tmp_path):
     assert frame.shape[1] == 2 and 0 <= at < 8
 
 
-def test_no_references_means_no_solver_run(tmp_path, monkeypatch):
+def test_no_references_means_no_solver_run(tmp_path, monkeypatch, waterdrop_test):
     """references=None (what rgns.failures asks of each run's evaluation: it measures the solver
     once per benchmark) rolls out the methods alone; the default is the solver at half its grid."""
     import rgns.evaluation.references as references_module
 
-    cfg = scene_config("waterdrop")
-    cfg["splits"] = {"train": 1, "valid": 1, "test": 1}
-    root = generate_dataset(cfg, tmp_path / "waterdrop", num_frames=14, seed=3, workers=1, progress=False)
-    dataset = Dataset.load(str(root), "test", 1, 5, None)
+    dataset = waterdrop_test
     method = Method("Const. velocity", ConstantVelocity(dataset.metadata, history=5), None, "baseline")
     built = []
     real = references_module.SolverReferences
