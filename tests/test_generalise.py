@@ -400,3 +400,9 @@ def test_the_break_picture_is_written_in_panels_a_person_can_read(tmp_path, dim,
     assert height > 2.3 * rows * 110
     assert not break_picture({}, dataset.bounds, 1, "nothing broke", tmp_path / "none.png")
     assert not (tmp_path / "none.png").exists()
+
+
+def test_particle_spans_read_with_thousands_separators():
+    from rgns.evaluation.report import span
+    assert span([1287, 1053, 1100]) == "1,053-1,287"
+    assert span([437, 437]) == "437"

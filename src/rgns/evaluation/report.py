@@ -380,8 +380,9 @@ def generalise_inverse_table(name: str, settings: dict, inverse: dict, order=())
 
 
 def span(values: list[int]) -> str:
+    """``low-high`` of whole numbers, with thousands separators (``1,053-1,287``), or one number."""
     low, high = min(values), max(values)
-    return f"{low}" if low == high else f"{low}-{high}"
+    return f"{low:,}" if low == high else f"{low:,}-{high:,}"
 
 
 def not_evaluated(results: dict) -> list[str]:
