@@ -3,6 +3,7 @@ smallest size within a factor of the best, on planted evaluations."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import statistics
 from pathlib import Path
@@ -129,3 +130,54 @@ def test_the_sweep_trains_each_model_as_the_main_jobs_base_run():
         size = ("model.latent=", "model.layers=")
         assert sorted(o for o in base[5:] if not o.startswith(size)) == sorted(body.split()), model
     assert {"rgns", "gns"} <= set(re.findall(r"^  (\w+)\) steps=", script, re.M))
+
+
+def test_strided_runs_are_sizes_of_their_own_scored_on_the_shared_frames(tmp_path):
+    """A run trained with data.stride=k groups as '<size> stride k' (its stride and scaled validation
+    lengths are not another recipe), and --metric rollout_mse_shared reads the shared-frame score."""
+    path = write_results(tmp_path / "results.json", {(32, 2, s): 9.0 for s in range(3)})
+    result = json.loads(path.read_text())
+    for label in [lbl for lbl in result["methods"] if "model" in result["methods"][lbl]]:
+        if result["methods"][label].get("hard_walls") is False:
+            continue
+        seed = result["methods"][label]["seed"]
+        strided = f"{label} stride 4"
+        result["methods"][strided] = dict(result["methods"][label], source=result["methods"][label]["source"] + ".s4",
+                                          overrides=[*result["methods"][label]["overrides"], "data.stride=4",
+                                                     "module.val_rollout_steps=38", "module.val_consistency_steps=5"])
+        result["datasets"]["waterdrop"]["summary"][strided] = dict(
+            result["datasets"]["waterdrop"]["summary"][label], stride=4, rollout_mse=8.0 + seed,
+            rollout_mse_shared=2.0 + seed, forward_ms_per_frame=1.0)
+        result["datasets"]["waterdrop"]["summary"][label]["rollout_mse_shared"] = 3.0 + seed
+    path.write_text(json.dumps(result))
+    plain = group(trained_runs(read_results([path])))
+    assert [(g["name"], g["stride"], g["mean"]) for g in plain] == [
+        ("R-GNS 32x2 pairwise couplings", 1, pytest.approx(9.0)),
+        ("R-GNS 32x2 pairwise couplings stride 4", 4, pytest.approx(9.0))]
+    shared = group(trained_runs(read_results([path]), metric="rollout_mse_shared"))
+    assert [g["mean"] for g in shared] == [pytest.approx(4.0), pytest.approx(3.0)]
+    assert pick(shared, 1.5)[0]["stride"] == 4
+    with pytest.raises(ValueError, match="metric 'mse'"):
+        trained_runs(read_results([path]), metric="mse")
+    # a stride-1 run with those overrides is another recipe: only a strided run's are its stride's
+    result["methods"]["R-GNS 32x2 pairwise couplings (seed=0)"]["overrides"].append("module.val_rollout_steps=38")
+    path.write_text(json.dumps(result))
+    names = {g["name"] for g in group(trained_runs(read_results([path])))}
+    assert "R-GNS 32x2 pairwise couplings (module.val_rollout_steps=38)" in names
+
+
+def test_the_sweep_script_trains_each_stride_with_scaled_validation(tmp_path):
+    """scripts/sizes.sh's STRIDES: names, the strided overrides, and the refusal of STAGE=1 at stride > 1."""
+    import subprocess
+
+    script = Path(__file__).parents[1] / "scripts" / "sizes.sh"
+    text = script.read_text()
+    assert 'module.val_rollout_steps=$(( (150 + stride - 1) / stride ))' in text
+    assert "--metric rollout_mse_shared" in text
+    env = dict(os.environ, STRIDES="1 4", STAGE="1", OUT=str(tmp_path / "out"))
+    done = subprocess.run(["bash", str(script), "rgns"], env=env, capture_output=True, text=True)
+    assert done.returncode == 2 and "STAGE=1 trains stride 1 only" in done.stderr and "stride 4" in done.stderr
+    done = subprocess.run(["bash", str(script), "rgns"], env=dict(env, STRIDES="0", STAGE="0"),
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and "stride '0' is not a positive whole number" in done.stderr
+    assert not (tmp_path / "out").exists()

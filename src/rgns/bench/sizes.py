@@ -13,6 +13,12 @@ the scene needs. A size with a run whose rollout MSE is missing or not finite (a
 rollout) is shown but never picked. The training-free baselines, the solver references and the
 twins rolled out without hard walls are left out; a checkpoint evaluated in several files counts
 once (its first).
+
+Runs trained on every k-th frame (``data.stride``, the evaluation's ``stride``) are sizes of their
+own, named ``stride k``; their ``data.stride`` and validation lengths (scaled with the stride) are
+not counted as another recipe. ``--metric rollout_mse_shared`` compares them on the frames every
+method predicts itself (docs/metrics.md, "Strided methods"), which with stride-1 runs alone is the
+rollout MSE; ms per frame is a step's time over the frames it covers.
 """
 from __future__ import annotations
 
@@ -27,6 +33,9 @@ from rgns.evaluation.plots import write_whole
 
 # training overrides that do not make another model: the seed, the size itself, and paths of one run
 NOT_A_RECIPE = ("seed=", "model.latent=", "model.layers=", "init_from=", "resume=", "hydra.")
+# a strided run's stride and the validation lengths scaled with it: named by "stride k" instead
+STRIDE_OVERRIDES = ("data.stride=", "module.val_rollout_steps=", "module.val_consistency_steps=")
+METRICS = ("rollout_mse", "rollout_mse_shared")
 
 
 def read_results(paths: list[str | Path]) -> list[tuple[Path, dict]]:
@@ -66,9 +75,13 @@ def _parameters(row: dict, source: str) -> int | None:
     return count_parameters(load_simulator(source)[0])
 
 
-def trained_runs(results: list[tuple[Path, dict]], dataset: str | None = None) -> list[dict]:
-    """One row per trained checkpoint scored on a dataset: its size, seed, rollout MSE, parameters
-    and ms per frame, and the training overrides that are not its size or seed."""
+def trained_runs(results: list[tuple[Path, dict]], dataset: str | None = None,
+                 metric: str = "rollout_mse") -> list[dict]:
+    """One row per trained checkpoint scored on a dataset: its size, stride, seed, rollout MSE
+    (``metric``: ``rollout_mse`` or ``rollout_mse_shared``), parameters and ms per frame, and the
+    training overrides that are not its size, stride or seed."""
+    if metric not in METRICS:
+        raise ValueError(f"metric {metric!r}: one of {', '.join(METRICS)}")
     runs, seen = [], set()
     for file, result in results:
         for name, sections in result["datasets"].items():
@@ -83,14 +96,17 @@ def trained_runs(results: list[tuple[Path, dict]], dataset: str | None = None) -
                     continue
                 seen.add(key)
                 model = info["model"]
-                mse = row.get("rollout_mse")
+                mse = row.get(metric)
+                stride = int(row.get("stride") or 1)
+                ignored = NOT_A_RECIPE + (STRIDE_OVERRIDES if stride > 1 else ())
                 runs.append(dict(
                     dataset=name, label=label, source=info["source"], results=str(file),
-                    size=describe(model) + (" pretrained" if info.get("pretrained") else ""),
-                    latent=model.get("latent"), layers=model.get("layers"), seed=info.get("seed"),
+                    size=describe(model) + (f" stride {stride}" if stride > 1 else "")
+                    + (" pretrained" if info.get("pretrained") else ""),
+                    latent=model.get("latent"), layers=model.get("layers"), stride=stride, seed=info.get("seed"),
                     rollout_mse=float(mse) if mse is not None else None,
                     ms_per_frame=row.get("forward_ms_per_frame"), parameters=_parameters(row, info["source"]),
-                    recipe=tuple(sorted(o for o in info.get("overrides", []) if not o.startswith(NOT_A_RECIPE)))))
+                    recipe=tuple(sorted(o for o in info.get("overrides", []) if not o.startswith(ignored)))))
     if not runs:
         where = f" on dataset {dataset}" if dataset else ""
         raise ValueError(f"{', '.join(str(f) for f, _ in results)}: no trained model's rollout MSE{where} "
@@ -118,12 +134,13 @@ def group(runs: list[dict]) -> list[dict]:
             raise ValueError(f"{size}: runs of one size with different parameter counts {sorted(counts, key=str)} "
                              f"({', '.join(r['source'] for r in members)})")
         out.append(dict(dataset=dataset, name=size + (f" ({','.join(own)})" if own else ""),
-                        latent=members[0]["latent"], layers=members[0]["layers"], parameters=counts.pop(),
+                        latent=members[0]["latent"], layers=members[0]["layers"], stride=members[0]["stride"],
+                        parameters=counts.pop(),
                         n=len(members), seeds=[r["seed"] for r in members], values=values,
                         mean=statistics.fmean(finite) if finite else None,
                         std=statistics.stdev(finite) if len(finite) > 1 else None,
                         ms_per_frame=statistics.fmean(times) if times else None, complete=complete))
-    return sorted(out, key=lambda g: (g["dataset"], g["parameters"] is None, g["parameters"] or 0, g["name"]))
+    return sorted(out, key=lambda g: (g["dataset"], g["parameters"] is None, g["parameters"] or 0, g["stride"], g["name"]))
 
 
 def pick(groups: list[dict], factor: float) -> tuple[dict | None, dict | None]:
@@ -172,17 +189,20 @@ def main(argv: list[str]) -> dict:
     parser.add_argument("results", nargs="+", help="results.json files or folders holding them")
     parser.add_argument("--factor", type=float, default=1.5, help="how far from the best mean a size may be")
     parser.add_argument("--dataset", default=None, help="only this dataset of the evaluations (default: each)")
+    parser.add_argument("--metric", choices=METRICS, default="rollout_mse",
+                        help="rollout_mse_shared: on the frames every method predicts itself (strided runs)")
     parser.add_argument("--json", type=Path, help="write the sizes and the picks here")
     args = parser.parse_args(argv)
     if args.factor < 1:
         parser.error(f"--factor {args.factor}: at least 1 (1: the best size itself)")
-    groups = group(trained_runs(read_results(args.results), args.dataset))
+    groups = group(trained_runs(read_results(args.results), args.dataset, args.metric))
+    print(f"metric: {args.metric}")
     print(table(groups, args.factor))
     picks = {}
     for dataset in dict.fromkeys(g["dataset"] for g in groups):
         best, smallest = pick([g for g in groups if g["dataset"] == dataset], args.factor)
         picks[dataset] = dict(best=best and best["name"], smallest_within_factor=smallest and smallest["name"])
-    out = dict(factor=args.factor, sizes=groups, picks=picks)
+    out = dict(factor=args.factor, metric=args.metric, sizes=groups, picks=picks)
     if args.json:
         write_whole(args.json, (json.dumps(out, indent=2) + "\n").encode())
     return out
