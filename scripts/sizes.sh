@@ -46,11 +46,15 @@ out=${OUT:-outputs/sizes/$model/$(date +%Y-%m-%d_%H-%M-%S)}
 mkdir -p "$out/train"
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONWARNINGS=ignore
 
+run_name() {  # run_name SIZE STRIDE SEED: <size>_seed<seed>, or <size>_stride<k>_seed<seed> at stride k > 1
+  if [ "$2" = 1 ]; then echo "${1}_seed$3"; else echo "${1}_stride${2}_seed$3"; fi
+}
+
 train() {  # train SIZE STRIDE SEED [overrides]: the base run, then (STAGE=1) its second stage
   local size=$1 stride=$2 seed=$3; shift 3
-  local run="$out/train/${size}_seed$seed" strided=()
+  local run strided=()
+  run="$out/train/$(run_name "$size" "$stride" "$seed")"
   if [ "$stride" != 1 ]; then
-    run="$out/train/${size}_stride${stride}_seed$seed"
     strided=(data.stride="$stride" module.val_rollout_steps=$(( (150 + stride - 1) / stride ))
              module.val_consistency_steps=$(( (20 + stride - 1) / stride )))
   fi
@@ -80,7 +84,7 @@ for size in "${sizes[@]}"; do
     for seed in "${seeds[@]}"; do
       while [ "${#running[@]}" -ge "${JOBS:-2}" ]; do reap; done
       train "$size" "$stride" "$seed" "$@" &
-      if [ "$stride" = 1 ]; then running[$!]="${size}_seed$seed"; else running[$!]="${size}_stride${stride}_seed$seed"; fi
+      running[$!]=$(run_name "$size" "$stride" "$seed")
     done
   done
 done
